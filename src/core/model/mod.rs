@@ -1,0 +1,187 @@
+//! Structure description → FE assembly → `K(θ) = K0 + Σ θ_l K_l` (paper (1)) and `M`.
+//!
+//! The model owns the sparse matrices (CSC, both triangles stored), the DOF labels, the
+//! parameters, the bolted connections and the sensor channels (rows of the selection
+//! matrix `D` of (7), here allowed to be non-Boolean). Assembly follows the primal
+//! formulation (3)–(4): every mesh node's three DOFs are linear combinations of the unique
+//! DOFs (a non-Boolean `L` where a member end is offset from a rigid joint's centre), and each
+//! element contributes `Lᵀ k_e L`.
+
+mod assemble;
+pub mod element;
+pub mod sparse;
+pub mod spec;
+
+use faer::reborrow::ReborrowMut;
+use faer::{Mat, MatMut};
+pub use sparse::{Csc, UnionPattern};
+pub use spec::ModelSpec;
+
+/// What an updating parameter scales.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ParameterKind {
+    /// Rotational stiffness of bolted connections (indices into [`Model::connections`]).
+    Connections(Vec<usize>),
+    /// Young's modulus of a set of members (names).
+    Modulus(Vec<String>),
+    /// Discrete springs (names).
+    Springs(Vec<String>),
+}
+
+/// One updating parameter θ_l.
+#[derive(Debug, Clone)]
+pub struct Parameter {
+    pub name: String,
+    pub nominal: f64,
+    pub kind: ParameterKind,
+}
+
+/// A bolted connection: member end ↔ node, nominal rotational stiffness `k` (N·m/rad).
+#[derive(Debug, Clone)]
+pub struct Connection {
+    pub name: String,
+    pub member: String,
+    pub node: String,
+    pub k: f64,
+    /// The parameter that scales it, if any.
+    pub parameter: Option<usize>,
+}
+
+/// A named sensor channel: `y = Σ c_i q_i` over the model DOFs.
+#[derive(Debug, Clone)]
+pub struct Channel {
+    pub name: String,
+    pub dofs: Vec<(usize, f64)>,
+}
+
+impl Channel {
+    /// The channel's reading of a DOF vector.
+    pub fn read(&self, q: &[f64]) -> f64 {
+        self.dofs.iter().map(|&(i, c)| c * q[i]).sum()
+    }
+}
+
+/// Errors in a model file, each naming the offending entry.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum ModelError {
+    #[error("model file is not valid TOML for a model: {0}")]
+    Parse(String),
+    #[error("{what} `{name}` is defined twice")]
+    Duplicate { what: &'static str, name: String },
+    #[error("{field}: unknown {what} `{name}`")]
+    Unknown {
+        field: String,
+        what: &'static str,
+        name: String,
+    },
+    #[error("{field}: {reason}")]
+    Invalid { field: String, reason: String },
+    #[error("DOF `{dof}` has no mass: M is singular (add a mass or fix the DOF)")]
+    MasslessDof { dof: String },
+}
+
+/// An assembled FE model of class C (paper §2.1): `M` and `K(θ) = K0 + Σ θ_l K_l`.
+#[derive(Debug, Clone)]
+pub struct Model {
+    pub name: String,
+    dof_labels: Vec<String>,
+    k0: Csc,
+    k_params: Vec<Csc>,
+    m: Csc,
+    parameters: Vec<Parameter>,
+    connections: Vec<Connection>,
+    channels: Vec<Channel>,
+    /// Union of the patterns of K0, every K_l and M (positions 0, 1..=p, p+1 in `maps`).
+    union: UnionPattern,
+}
+
+impl Model {
+    /// Parses a model file's text and assembles it.
+    pub fn from_toml(text: &str) -> Result<Self, ModelError> {
+        let spec: ModelSpec = toml::from_str(text).map_err(|e| ModelError::Parse(e.to_string()))?;
+        Self::from_spec(&spec)
+    }
+
+    /// Checks a parsed model file and assembles it.
+    pub fn from_spec(spec: &ModelSpec) -> Result<Self, ModelError> {
+        assemble::assemble(spec)
+    }
+
+    pub fn n_dof(&self) -> usize {
+        self.dof_labels.len()
+    }
+    pub fn n_params(&self) -> usize {
+        self.parameters.len()
+    }
+    pub fn dof_labels(&self) -> &[String] {
+        &self.dof_labels
+    }
+    pub fn parameters(&self) -> &[Parameter] {
+        &self.parameters
+    }
+    pub fn connections(&self) -> &[Connection] {
+        &self.connections
+    }
+    pub fn channels(&self) -> &[Channel] {
+        &self.channels
+    }
+    pub fn channel_index(&self, name: &str) -> Option<usize> {
+        self.channels.iter().position(|c| c.name == name)
+    }
+    /// The nominal parameter vector θ0.
+    pub fn nominal_theta(&self) -> Vec<f64> {
+        self.parameters.iter().map(|p| p.nominal).collect()
+    }
+    /// `K0`, the part of the stiffness no parameter scales.
+    pub fn k0(&self) -> &Csc {
+        &self.k0
+    }
+    /// `K_l = ∂K/∂θ_l`, paper (1)–(2).
+    pub fn k_param(&self, l: usize) -> &Csc {
+        &self.k_params[l]
+    }
+    pub fn mass(&self) -> &Csc {
+        &self.m
+    }
+    pub fn union_pattern(&self) -> &UnionPattern {
+        &self.union
+    }
+
+    /// `K(θ) − σ M` on the union pattern's value array, paper (1).
+    pub fn shifted_stiffness_values(&self, theta: &[f64], sigma: f64, out: &mut [f64]) {
+        out.iter_mut().for_each(|v| *v = 0.0);
+        self.union.add_into(0, &self.k0, 1.0, out);
+        for (l, kl) in self.k_params.iter().enumerate() {
+            self.union.add_into(l + 1, kl, theta[l], out);
+        }
+        if sigma != 0.0 {
+            let p = self.k_params.len();
+            self.union.add_into(p + 1, &self.m, -sigma, out);
+        }
+    }
+
+    /// Dense `K(θ)` into `out` (n × n), paper (1).
+    pub fn stiffness_dense_into(&self, theta: &[f64], mut out: MatMut<'_, f64>) {
+        out.fill(0.0);
+        scatter_dense(&self.k0, 1.0, out.rb_mut());
+        for (l, kl) in self.k_params.iter().enumerate() {
+            scatter_dense(kl, theta[l], out.rb_mut());
+        }
+    }
+
+    /// Dense `M`.
+    pub fn mass_dense(&self) -> Mat<f64> {
+        let mut out = Mat::zeros(self.n_dof(), self.n_dof());
+        scatter_dense(&self.m, 1.0, out.as_mut());
+        out
+    }
+}
+
+fn scatter_dense(a: &Csc, alpha: f64, mut out: MatMut<'_, f64>) {
+    let s = a.symbolic();
+    for j in 0..a.ncols() {
+        for (&i, &v) in s.row_idx_of_col_raw(j).iter().zip(a.val_of_col(j)) {
+            out[(i, j)] += alpha * v;
+        }
+    }
+}

@@ -1,0 +1,178 @@
+//! The model file: a TOML description of a plane frame (DESIGN §3.1), deserialized as written.
+//! [`super::Model::from_spec`] checks it and assembles the matrices.
+//!
+//! ```toml
+//! name = "lab-frame"
+//! [[materials]] name = "steel", E = 2.1e11, rho = 7840.0
+//! [[sections]]  name = "flat-50x11", A = 5.5e-4, I = 5.5458e-9
+//! [[nodes]]     name = "J1L", x = 0.0, y = 0.5
+//! [[joints]]    node = "J1L", mass = 1.86, inertia = 1.55e-3, size = 0.04
+//! [[members]]   name = "C1L", from = "BL", to = "J1L", section = "flat-50x11",
+//!               material = "steel", elements = 5
+//! [[supports]]  node = "BL"                       # clamped; or fix = ["x", "y"]
+//! [[connections]] member = "C1L", node = "J1L", k = 1e4   # name defaults to "C1L@J1L"
+//! [[parameters]] name = "C1L@J1L", connections = ["C1L@J1L"]
+//! [[parameters]] name = "E", members = ["C1L", "C2L"]     # scales E of those members
+//! [[channels]]  name = "C1L.1", at = "C1L.1", dir = "x"
+//! ```
+//! Locations (`at`) are model nodes (`J1L`) or interior mesh nodes of a member, numbered
+//! from the member's `from` end (`C2L.3`). Directions are global: `x`, `y`, `rz`.
+
+use serde::Deserialize;
+
+/// A whole model file.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModelSpec {
+    /// The structure's name; modal sets name it in `structure`.
+    pub name: String,
+    #[serde(default)]
+    pub description: String,
+    #[serde(default)]
+    pub materials: Vec<MaterialSpec>,
+    #[serde(default)]
+    pub sections: Vec<SectionSpec>,
+    pub nodes: Vec<NodeSpec>,
+    #[serde(default)]
+    pub joints: Vec<JointSpec>,
+    #[serde(default)]
+    pub members: Vec<MemberSpec>,
+    #[serde(default)]
+    pub supports: Vec<SupportSpec>,
+    #[serde(default)]
+    pub connections: Vec<ConnectionSpec>,
+    #[serde(default)]
+    pub masses: Vec<MassSpec>,
+    #[serde(default)]
+    pub springs: Vec<SpringSpec>,
+    #[serde(default)]
+    pub parameters: Vec<ParameterSpec>,
+    #[serde(default)]
+    pub channels: Vec<ChannelSpec>,
+}
+
+#[allow(non_snake_case)]
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MaterialSpec {
+    pub name: String,
+    /// Young's modulus, Pa.
+    pub E: f64,
+    /// Density, kg/m³.
+    pub rho: f64,
+}
+
+#[allow(non_snake_case)]
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SectionSpec {
+    pub name: String,
+    /// Area, m².
+    pub A: f64,
+    /// Second moment of area about the bending axis, m⁴.
+    pub I: f64,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NodeSpec {
+    pub name: String,
+    pub x: f64,
+    pub y: f64,
+}
+
+/// A rigid body centred on a node (3 DOF at the centre). Member ends at its node stop
+/// `size` short of the centre along the member axis; their translations follow the body
+/// (primal assembly with a non-Boolean L, paper (3)–(4)).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JointSpec {
+    pub node: String,
+    /// kg
+    #[serde(default)]
+    pub mass: f64,
+    /// Rotary inertia about z, kg·m².
+    #[serde(default)]
+    pub inertia: f64,
+    /// Distance from the centre at which member ends stop, m.
+    #[serde(default)]
+    pub size: f64,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MemberSpec {
+    pub name: String,
+    pub from: String,
+    pub to: String,
+    pub section: String,
+    pub material: String,
+    /// Number of frame elements along the member.
+    pub elements: usize,
+}
+
+/// Fixed DOFs of a node; all three (clamped) when `fix` is absent.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SupportSpec {
+    pub node: String,
+    pub fix: Option<Vec<String>>,
+}
+
+/// A bolted connection: the rotation of `member`'s end at `node` becomes its own DOF, tied
+/// to the node's rotation by a rotational spring `k` (N·m/rad), paper (2).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ConnectionSpec {
+    pub name: Option<String>,
+    pub member: String,
+    pub node: String,
+    pub k: f64,
+}
+
+/// A lumped mass (kg, on x and y) and rotary inertia (kg·m², on rz) at a location.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MassSpec {
+    pub at: String,
+    #[serde(default)]
+    pub mass: f64,
+    #[serde(default)]
+    pub inertia: f64,
+}
+
+/// A discrete spring along one global DOF direction between locations `a` and `b`, or from
+/// `a` to the ground when `b` is absent. Stiffness in N/m (x, y) or N·m/rad (rz).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SpringSpec {
+    pub name: String,
+    pub a: String,
+    pub b: Option<String>,
+    pub dof: String,
+    pub k: f64,
+}
+
+/// An updating parameter θ_l: a group of connections, springs, or a scale of E of a set of
+/// members. Exactly one of the lists is non-empty.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ParameterSpec {
+    pub name: String,
+    #[serde(default)]
+    pub connections: Vec<String>,
+    #[serde(default)]
+    pub members: Vec<String>,
+    #[serde(default)]
+    pub springs: Vec<String>,
+    /// Nominal (starting) value; 1 when absent.
+    pub nominal: Option<f64>,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ChannelSpec {
+    pub name: String,
+    pub at: String,
+    pub dir: String,
+}

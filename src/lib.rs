@@ -1,0 +1,5 @@
+//! boltwatch: structural health monitoring of bolted connections by FE model updating.
+//!
+//! See `README.md` and the paper map in `src/core/mod.rs`.
+
+pub mod core;

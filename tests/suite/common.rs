@@ -1,0 +1,73 @@
+//! Shared helpers for the integration tests.
+
+use boltwatch::core::model::Model;
+
+/// Path of a shipped model file.
+pub fn model_path(name: &str) -> String {
+    format!("{}/config/models/{name}.toml", env!("CARGO_MANIFEST_DIR"))
+}
+
+/// Loads a shipped model.
+pub fn load_model(name: &str) -> Model {
+    let text = std::fs::read_to_string(model_path(name)).expect("shipped model exists");
+    Model::from_toml(&text).expect("shipped model assembles")
+}
+
+/// A straight steel flat-bar cantilever of length 0.6 m along x, clamped at x = 0, with
+/// `elements` elements, optionally on a rotational spring `k_base` at the clamp, with one
+/// `y` channel per interior node.
+pub fn cantilever_toml(elements: usize, k_base: Option<f64>) -> String {
+    let mut s = String::from(
+        r#"name = "beam"
+[[materials]]
+name = "steel"
+E = 2.1e11
+rho = 7840.0
+[[sections]]
+name = "bar"
+A = 5.5e-4
+I = 5.5458e-9
+[[nodes]]
+name = "base"
+x = 0.0
+y = 0.0
+[[nodes]]
+name = "tip"
+x = 0.6
+y = 0.0
+[[supports]]
+node = "base"
+"#,
+    );
+    s += &format!(
+        "[[members]]\nname = \"b\"\nfrom = \"base\"\nto = \"tip\"\nsection = \"bar\"\nmaterial = \"steel\"\nelements = {elements}\n"
+    );
+    if let Some(k) = k_base {
+        s += &format!(
+            "[[connections]]\nname = \"root\"\nmember = \"b\"\nnode = \"base\"\nk = {k:e}\n[[parameters]]\nname = \"root\"\nconnections = [\"root\"]\n"
+        );
+    }
+    for k in 1..elements {
+        s += &format!("[[channels]]\nname = \"b.{k}\"\nat = \"b.{k}\"\ndir = \"y\"\n");
+    }
+    s
+}
+
+/// Bisection for a sign change of `f` on `[a, b]`, to machine precision.
+pub fn bisect(f: impl Fn(f64) -> f64, mut a: f64, mut b: f64) -> f64 {
+    let mut fa = f(a);
+    for _ in 0..200 {
+        let m = 0.5 * (a + b);
+        let fm = f(m);
+        if fm == 0.0 {
+            return m;
+        }
+        if (fm < 0.0) == (fa < 0.0) {
+            a = m;
+            fa = fm;
+        } else {
+            b = m;
+        }
+    }
+    0.5 * (a + b)
+}

@@ -1,0 +1,3 @@
+//! One integration-test binary; modules under `tests/suite/`.
+
+mod suite;
