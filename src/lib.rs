@@ -2,4 +2,6 @@
 //!
 //! See `README.md` and the paper map in `src/core/mod.rs`.
 
+pub mod commands;
+pub mod contract;
 pub mod core;

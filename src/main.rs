@@ -1,1 +1,43 @@
-fn main() {}
+//! The `boltwatch` command line: parses arguments, runs a command, maps errors to exit codes.
+
+use std::process::ExitCode;
+
+use boltwatch::commands::{modes, simulate, update};
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(
+    name = "boltwatch",
+    version,
+    about = "Bolted-connection stiffness monitoring by FE model updating"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Write a modal set simulated from a model at θ, with noise.
+    Simulate(simulate::SimulateArgs),
+    /// Write the lowest natural frequencies and mode shapes at the channels.
+    Modes(modes::ModesArgs),
+    /// Update the model's parameters to a modal set.
+    Update(update::UpdateArgs),
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match &cli.command {
+        Command::Simulate(a) => simulate::run(a),
+        Command::Modes(a) => modes::run(a),
+        Command::Update(a) => update::run(a),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::from(2)
+        }
+    }
+}

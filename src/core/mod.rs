@@ -4,3 +4,5 @@
 
 pub mod modal;
 pub mod model;
+pub mod simulate;
+pub mod updating;

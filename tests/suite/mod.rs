@@ -1,2 +1,5 @@
 mod common;
 mod fe;
+mod modal_set;
+mod mode_matching;
+mod sensitivity;

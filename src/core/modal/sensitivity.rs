@@ -45,6 +45,7 @@ impl Nelson {
     /// Eigenvalue derivatives `dlambda[l] = ∂λ/∂θ_l` and eigenvector derivatives
     /// `dphi[:, l] = ∂φ/∂θ_l` (n_dof × n_params) of the mass-normalized mode `(lambda, phi)`
     /// of `K(θ)`. `mode` (1-based) only labels errors.
+    #[allow(clippy::too_many_arguments)] // the quantities of the formula, each distinct
     pub fn derivatives(
         &mut self,
         model: &Model,
@@ -85,12 +86,12 @@ impl Nelson {
         self.m_phi.iter_mut().for_each(|v| *v = 0.0);
         spmv_add(model.mass(), phi, 1.0, &mut self.m_phi);
         let mut f = vec![0.0; n];
-        for l in 0..p {
+        for (l, dl) in dlambda.iter_mut().enumerate().take(p) {
             let kl = model.k_param(l);
-            dlambda[l] = bilinear(kl, phi, phi);
+            *dl = bilinear(kl, phi, phi);
             f.iter_mut()
                 .zip(&self.m_phi)
-                .for_each(|(fi, mp)| *fi = dlambda[l] * mp);
+                .for_each(|(fi, mp)| *fi = *dl * mp);
             spmv_add(kl, phi, -1.0, &mut f);
             f[k] = 0.0;
             for (i, &v) in f.iter().enumerate() {

@@ -301,7 +301,7 @@ pub(super) fn assemble(spec: &ModelSpec) -> Result<Model, ModelError> {
         let e = [(pb[0] - pa[0]) / len, (pb[1] - pa[1]) / len];
         let size_at = |n: usize| joint_of_node[n].map_or(0.0, |j| spec.joints[j].size);
         let (sa, sb) = (size_at(a), size_at(b));
-        if !(len > sa + sb) {
+        if len <= sa + sb {
             return Err(invalid(
                 field,
                 format!("length {len} m is not longer than the joint offsets {sa} + {sb} m"),
@@ -458,10 +458,10 @@ pub(super) fn assemble(spec: &ModelSpec) -> Result<Model, ModelError> {
     let mut diag = vec![0.0; n];
     {
         let s = m.symbolic();
-        for j in 0..n {
+        for (j, d) in diag.iter_mut().enumerate() {
             for (&i, &v) in s.row_idx_of_col_raw(j).iter().zip(m.val_of_col(j)) {
                 if i == j {
-                    diag[j] = v;
+                    *d = v;
                 }
             }
         }

@@ -48,8 +48,8 @@ impl Accumulator {
 /// `y += a · A x` for a sparse `A`.
 pub fn spmv_add(a: &Csc, x: &[f64], alpha: f64, y: &mut [f64]) {
     let s = a.symbolic();
-    for j in 0..a.ncols() {
-        let xj = alpha * x[j];
+    for (j, &x_j) in x.iter().enumerate().take(a.ncols()) {
+        let xj = alpha * x_j;
         if xj == 0.0 {
             continue;
         }
@@ -63,8 +63,7 @@ pub fn spmv_add(a: &Csc, x: &[f64], alpha: f64, y: &mut [f64]) {
 pub fn bilinear(a: &Csc, x: &[f64], y: &[f64]) -> f64 {
     let s = a.symbolic();
     let mut acc = 0.0;
-    for j in 0..a.ncols() {
-        let yj = y[j];
+    for (j, &yj) in y.iter().enumerate().take(a.ncols()) {
         if yj == 0.0 {
             continue;
         }

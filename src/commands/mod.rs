@@ -1,0 +1,60 @@
+//! The command-line commands (DESIGN §2): file I/O and tables around the pure core.
+
+pub mod modes;
+pub mod simulate;
+pub mod update;
+
+use std::path::Path;
+
+use anyhow::{Context, Result, bail};
+
+use crate::core::model::Model;
+
+/// Reads and assembles a model file.
+pub fn load_model(path: &Path) -> Result<Model> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read model file {}", path.display()))?;
+    Model::from_toml(&text).with_context(|| format!("model file {}", path.display()))
+}
+
+/// Parses `--theta a,b,...` against the model's parameters (default: nominal θ).
+pub fn parse_theta(model: &Model, arg: Option<&str>, flag: &str) -> Result<Vec<f64>> {
+    let Some(s) = arg else {
+        return Ok(model.nominal_theta());
+    };
+    let values = s
+        .split(',')
+        .enumerate()
+        .map(|(i, v)| {
+            let x: f64 = v
+                .trim()
+                .parse()
+                .with_context(|| format!("{flag}: entry {} `{v}` is not a number", i + 1))?;
+            if !(x.is_finite() && x > 0.0) {
+                bail!("{flag}: entry {} = {x} must be a finite number > 0", i + 1);
+            }
+            Ok(x)
+        })
+        .collect::<Result<Vec<f64>>>()?;
+    if values.len() != model.n_params() {
+        bail!(
+            "{flag}: {} values given but model `{}` has {} parameters ({})",
+            values.len(),
+            model.name,
+            model.n_params(),
+            model
+                .parameters()
+                .iter()
+                .map(|p| p.name.as_str())
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
+    Ok(values)
+}
+
+/// Writes pretty JSON to `path`.
+pub fn write_json(path: &Path, value: &serde_json::Value) -> Result<()> {
+    let text = serde_json::to_string_pretty(value)?;
+    std::fs::write(path, text + "\n").with_context(|| format!("cannot write {}", path.display()))
+}

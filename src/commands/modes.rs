@@ -1,0 +1,69 @@
+//! `boltwatch modes`: the lowest natural frequencies and mode shapes at the channels.
+
+use std::path::PathBuf;
+
+use anyhow::{Result, bail};
+use serde_json::json;
+
+use super::{load_model, parse_theta, write_json};
+use crate::core::modal::{DenseEigen, EigenSolver};
+
+#[derive(Debug, clap::Args)]
+pub struct ModesArgs {
+    /// Model file (TOML).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Parameter values θ, comma separated (default: nominal).
+    #[arg(long, allow_hyphen_values = true)]
+    pub theta: Option<String>,
+    /// Number of modes.
+    #[arg(short = 'n', long = "modes", default_value_t = 10)]
+    pub n: usize,
+    /// Output file (boltwatch.modes.v1).
+    #[arg(short, long)]
+    pub out: PathBuf,
+}
+
+pub fn run(args: &ModesArgs) -> Result<()> {
+    let model = load_model(&args.model)?;
+    let theta = parse_theta(&model, args.theta.as_deref(), "--theta")?;
+    if args.n == 0 || args.n > model.n_dof() {
+        bail!(
+            "-n = {} must be between 1 and the model's {} DOFs",
+            args.n,
+            model.n_dof()
+        );
+    }
+    let mut solver = DenseEigen::new(&model)?;
+    let eig = solver.solve(&model, &theta, args.n)?;
+    let mut phi = vec![0.0; model.n_dof()];
+    let mut shapes = Vec::with_capacity(args.n);
+    for k in 0..args.n {
+        for (i, v) in phi.iter_mut().enumerate() {
+            *v = eig.phi[(i, k)];
+        }
+        shapes.push(
+            model
+                .channels()
+                .iter()
+                .map(|c| c.read(&phi))
+                .collect::<Vec<f64>>(),
+        );
+    }
+    let freqs: Vec<f64> = (0..args.n).map(|k| eig.frequency_hz(k)).collect();
+    let out = json!({
+        "schema": "boltwatch.modes.v1",
+        "structure": model.name,
+        "theta": theta,
+        "normalization": "mass (φᵀMφ = 1), largest-magnitude DOF positive",
+        "frequencies_hz": freqs,
+        "channels": model.channels().iter().map(|c| c.name.clone()).collect::<Vec<_>>(),
+        "shapes": shapes,
+    });
+    write_json(&args.out, &out)?;
+    println!("{:>4}  {:>12}", "mode", "f [Hz]");
+    for (k, f) in freqs.iter().enumerate() {
+        println!("{:>4}  {:>12.4}", k + 1, f);
+    }
+    Ok(())
+}

@@ -1,0 +1,3 @@
+//! Wire contracts: the JSON messages boltwatch accepts and emits, with strict validation.
+
+pub mod modal_set;

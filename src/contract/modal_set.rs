@@ -1,0 +1,597 @@
+//! The `boltwatch.modal_set.v1` message (DESIGN §3.2): one set of measured modes (natural
+//! frequencies, optional mode shapes on named channels, optional uncertainties) of a watched
+//! structure at one time.
+//!
+//! This module owns the contract: the Rust types, the strict validation of incoming payloads
+//! ([`parse_modal_set`]) and the canonical JSON encoding ([`ModalSet::to_json`]). Every
+//! rejection names the offending field as a JSON path (`modes[2].shape[5]`) and says why,
+//! with the data. Payloads from Python's `json.dumps` may carry bare `NaN`, `Infinity` and
+//! `-Infinity`; these are recognised (outside string literals only) and rejected by field.
+
+use chrono::{DateTime, SecondsFormat, Utc};
+use serde_json::{Map, Value};
+
+/// The value of the `schema` field of every modal set.
+pub const MODAL_SET_SCHEMA: &str = "boltwatch.modal_set.v1";
+
+/// Relative tolerance of the increasing-frequency rule.
+pub const FREQUENCY_ORDER_TOLERANCE: f64 = 1e-6;
+
+/// Top-level fields of the contract.
+const TOP_FIELDS: &[&str] = &[
+    "schema",
+    "structure",
+    "time",
+    "channels",
+    "modes",
+    "temperature_c",
+    "source",
+];
+
+/// Fields of one mode.
+const MODE_FIELDS: &[&str] = &["frequency_hz", "frequency_cov", "shape", "shape_nsd"];
+
+/// Prefix of the string the sanitizing pass substitutes for a non-finite number token. It
+/// starts with NUL so no sensible string value collides with it.
+const NONFINITE_MARKER: &str = "\u{0}boltwatch-nonfinite:";
+
+/// One measured modal set, validated.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModalSet {
+    /// Name of the structure the set was measured on.
+    pub structure: String,
+    /// Time of the measurement.
+    pub time: DateTime<Utc>,
+    /// Names of the mode-shape entries, in order; channels of the model, no duplicates.
+    /// Empty only when no mode carries a shape.
+    pub channels: Vec<String>,
+    /// The modes, by increasing frequency (within [`FREQUENCY_ORDER_TOLERANCE`]).
+    pub modes: Vec<MeasuredMode>,
+    /// Temperature of the structure during the measurement, °C.
+    pub temperature_c: Option<f64>,
+    /// Free-text provenance (e.g. the identification run).
+    pub source: Option<String>,
+}
+
+/// One measured mode.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MeasuredMode {
+    /// Natural frequency, Hz (finite, > 0).
+    pub frequency_hz: f64,
+    /// Coefficient of variation of the frequency (> 0).
+    pub frequency_cov: Option<f64>,
+    /// Mode shape, one entry per channel of the set; `None` entries were not measured.
+    /// Never empty and never all `None`.
+    pub shape: Option<Vec<Option<f64>>>,
+    /// Normalized standard deviation of the shape (> 0); only on modes with a shape.
+    pub shape_nsd: Option<f64>,
+}
+
+/// Why a modal set was rejected: the offending field (a JSON path such as `modes[2].shape[5]`) and the reason.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{field}: {reason}")]
+pub struct Rejection {
+    /// JSON path of the offending field (`payload` when the payload as a whole is bad).
+    pub field: String,
+    /// Why, with the offending data.
+    pub reason: String,
+}
+
+/// What the receiver knows when validating.
+pub struct ValidationContext<'a> {
+    /// Structures this process watches (a set is rejected if its `structure` is not one of them).
+    pub structures: &'a [&'a str],
+    /// Channel names of the model, in model order.
+    pub model_channels: &'a [String],
+    /// Time of the last accepted set, if any.
+    pub last_time: Option<DateTime<Utc>>,
+    /// Replays may allow a set with the same time as the last accepted one.
+    pub allow_equal_time: bool,
+}
+
+fn reject(field: impl Into<String>, reason: impl Into<String>) -> Rejection {
+    Rejection {
+        field: field.into(),
+        reason: reason.into(),
+    }
+}
+
+/// The original token of a non-finite number replaced by [`sanitize`], if `v` is one.
+fn nonfinite_token(v: &Value) -> Option<&str> {
+    v.as_str()?.strip_prefix(NONFINITE_MARKER)
+}
+
+fn nonfinite_reason(token: &str) -> String {
+    match token {
+        "NaN" | "Infinity" | "-Infinity" => format!("not a finite number ({token})"),
+        _ => format!("not a finite number ({token} overflows f64)"),
+    }
+}
+
+/// What kind of JSON value `v` is, for "expected …, got …" reasons.
+fn kind(v: &Value) -> String {
+    if let Some(token) = nonfinite_token(v) {
+        return format!("a non-finite number ({token})");
+    }
+    match v {
+        Value::Null => "null",
+        Value::Bool(_) => "a boolean",
+        Value::Number(_) => "a number",
+        Value::String(_) => "a string",
+        Value::Array(_) => "an array",
+        Value::Object(_) => "an object",
+    }
+    .to_string()
+}
+
+/// A finite number, or a rejection naming `field`.
+fn number(v: &Value, field: &str) -> Result<f64, Rejection> {
+    if let Some(token) = nonfinite_token(v) {
+        return Err(reject(field, nonfinite_reason(token)));
+    }
+    match v {
+        Value::Number(n) => match n.as_f64() {
+            Some(x) if x.is_finite() => Ok(x),
+            _ => Err(reject(field, format!("not a finite number ({n})"))),
+        },
+        other => Err(reject(
+            field,
+            format!("expected a number, got {}", kind(other)),
+        )),
+    }
+}
+
+/// A finite number > 0, or a rejection naming `field`.
+fn positive(v: &Value, field: &str) -> Result<f64, Rejection> {
+    let x = number(v, field)?;
+    if x > 0.0 {
+        Ok(x)
+    } else {
+        Err(reject(field, format!("must be > 0, got {x}")))
+    }
+}
+
+/// A string (not a substituted non-finite number), or a rejection naming `field`.
+fn string<'v>(v: &'v Value, field: &str) -> Result<&'v str, Rejection> {
+    match v {
+        Value::String(s) if nonfinite_token(v).is_none() => Ok(s),
+        other => Err(reject(
+            field,
+            format!("expected a string, got {}", kind(other)),
+        )),
+    }
+}
+
+/// The field `key` of `obj`, or a "missing" rejection naming `path`.
+fn required<'v>(
+    obj: &'v Map<String, Value>,
+    key: &str,
+    path: &str,
+) -> Result<&'v Value, Rejection> {
+    obj.get(key)
+        .ok_or_else(|| reject(path, "missing (required)"))
+}
+
+/// Rejects the first field of `obj` not in `allowed`.
+fn no_unknown_fields(
+    obj: &Map<String, Value>,
+    allowed: &[&str],
+    prefix: &str,
+) -> Result<(), Rejection> {
+    match obj.keys().find(|k| !allowed.contains(&k.as_str())) {
+        Some(k) => Err(reject(
+            format!("{prefix}{}", k.escape_debug()),
+            format!("unknown field (allowed: {})", allowed.join(", ")),
+        )),
+        None => Ok(()),
+    }
+}
+
+fn format_time(t: &DateTime<Utc>) -> String {
+    t.to_rfc3339_opts(SecondsFormat::AutoSi, true)
+}
+
+/// Replaces the bare tokens `NaN`, `Infinity` and `-Infinity`, and number literals that
+/// overflow f64 (`1e999`), outside string literals, by a marker string the JSON parser
+/// accepts (`"\u0000boltwatch-nonfinite:<token>"`), so the walk can name the field.
+/// Everything else, in particular string contents, is copied unchanged.
+fn sanitize(text: &str) -> String {
+    let bytes = text.as_bytes();
+    let mut out = String::with_capacity(text.len() + 16);
+    let mut copied = 0; // bytes of `text` already in `out`
+    let mut in_string = false;
+    let mut i = 0;
+    while i < bytes.len() {
+        let c = bytes[i];
+        if in_string {
+            match c {
+                b'\\' => i += 2,
+                b'"' => {
+                    in_string = false;
+                    i += 1;
+                }
+                _ => i += 1,
+            }
+            continue;
+        }
+        match c {
+            b'"' => {
+                in_string = true;
+                i += 1;
+            }
+            b'N' | b'I' | b'-' | b'0'..=b'9' => {
+                // A bare token: letters, digits and the number punctuation. It ends on an
+                // ASCII byte or at the end, so `i..end` lies on char boundaries.
+                let mut end = i + 1;
+                while end < bytes.len()
+                    && (bytes[end].is_ascii_alphanumeric()
+                        || matches!(bytes[end], b'+' | b'-' | b'.'))
+                {
+                    end += 1;
+                }
+                let token = text.get(i..end).unwrap_or("");
+                let replace = match token {
+                    "NaN" | "Infinity" | "-Infinity" => true,
+                    _ => token.parse::<f64>().is_ok_and(f64::is_infinite),
+                };
+                if replace {
+                    out.push_str(text.get(copied..i).unwrap_or(""));
+                    out.push('"');
+                    out.push_str("\\u0000");
+                    out.push_str(NONFINITE_MARKER.trim_start_matches('\u{0}'));
+                    out.push_str(token);
+                    out.push('"');
+                    copied = end;
+                }
+                i = end;
+            }
+            _ => i += 1,
+        }
+    }
+    out.push_str(text.get(copied..).unwrap_or(""));
+    out
+}
+
+/// Parses and validates a payload. Never panics on any input bytes.
+///
+/// Rejections (field / reason):
+/// - `payload`: not UTF-8, not JSON (with the parser's message) or not an object;
+/// - `schema`: missing or not [`MODAL_SET_SCHEMA`];
+/// - an unknown top-level or mode field, named by its path;
+/// - `structure`: missing, not a string, or not one of `ctx.structures`;
+/// - `time`: missing, not RFC 3339, earlier than `ctx.last_time` (or equal to it unless
+///   `ctx.allow_equal_time`);
+/// - `channels[j]`: not a string, not a channel of the model, or a duplicate;
+/// - `modes`: missing, not an array or empty; `modes[i]` not an object;
+/// - any number (`frequency_hz`, `frequency_cov`, shape entries, `shape_nsd`,
+///   `temperature_c`) not finite (bare `NaN`/`Infinity`, overflow) or of the wrong type;
+/// - `modes[i].frequency_hz`: ≤ 0, or below the previous mode's frequency by more than
+///   [`FREQUENCY_ORDER_TOLERANCE`] (relative);
+/// - `modes[i].frequency_cov`, `modes[i].shape_nsd`: ≤ 0, or present on some modes (with a
+///   shape, for `shape_nsd`) but not others; `shape_nsd` on a mode without a shape;
+/// - `modes[i].shape`: empty, all null, or not as long as `channels`.
+///
+/// `null` is accepted only as a shape entry: an optional field is either present with a
+/// value or absent.
+pub fn parse_modal_set(payload: &[u8], ctx: &ValidationContext) -> Result<ModalSet, Rejection> {
+    let text =
+        std::str::from_utf8(payload).map_err(|e| reject("payload", format!("not UTF-8: {e}")))?;
+    let value: Value = serde_json::from_str(&sanitize(text))
+        .map_err(|e| reject("payload", format!("not JSON: {e}")))?;
+    let Value::Object(obj) = value else {
+        return Err(reject(
+            "payload",
+            format!("expected a JSON object, got {}", kind(&value)),
+        ));
+    };
+
+    // schema
+    let schema = required(&obj, "schema", "schema")?;
+    if schema.as_str() != Some(MODAL_SET_SCHEMA) {
+        let got = match schema.as_str() {
+            Some(s) if nonfinite_token(schema).is_none() => format!("{s:?}"),
+            _ => kind(schema),
+        };
+        return Err(reject(
+            "schema",
+            format!("expected {MODAL_SET_SCHEMA:?}, got {got}"),
+        ));
+    }
+    no_unknown_fields(&obj, TOP_FIELDS, "")?;
+
+    // structure
+    let structure = string(required(&obj, "structure", "structure")?, "structure")?;
+    if !ctx.structures.contains(&structure) {
+        return Err(reject(
+            "structure",
+            format!(
+                "{structure:?} is not a watched structure (watched: {:?})",
+                ctx.structures
+            ),
+        ));
+    }
+
+    // time
+    let time_text = string(required(&obj, "time", "time")?, "time")?;
+    let time = DateTime::parse_from_rfc3339(time_text)
+        .map_err(|e| {
+            reject(
+                "time",
+                format!("{time_text:?} is not an RFC 3339 time: {e}"),
+            )
+        })?
+        .with_timezone(&Utc);
+    if let Some(last) = ctx.last_time {
+        if time < last {
+            return Err(reject(
+                "time",
+                format!(
+                    "{} is earlier than the last accepted set's {}",
+                    format_time(&time),
+                    format_time(&last)
+                ),
+            ));
+        }
+        if time == last && !ctx.allow_equal_time {
+            return Err(reject(
+                "time",
+                format!(
+                    "{} equals the last accepted set's {} (equal times allowed only in replays)",
+                    format_time(&time),
+                    format_time(&last)
+                ),
+            ));
+        }
+    }
+
+    // channels
+    let mut channels: Vec<String> = Vec::new();
+    if let Some(v) = obj.get("channels") {
+        let Value::Array(items) = v else {
+            return Err(reject(
+                "channels",
+                format!("expected an array, got {}", kind(v)),
+            ));
+        };
+        for (j, item) in items.iter().enumerate() {
+            let field = format!("channels[{j}]");
+            let name = string(item, &field)?;
+            if !ctx.model_channels.iter().any(|c| c == name) {
+                return Err(reject(
+                    field,
+                    format!("unknown channel {name:?} (not a channel of the model)"),
+                ));
+            }
+            if let Some(k) = channels.iter().position(|c| c == name) {
+                return Err(reject(
+                    field,
+                    format!("duplicate channel {name:?} (also channels[{k}])"),
+                ));
+            }
+            channels.push(name.to_string());
+        }
+    }
+
+    // modes
+    let modes_value = required(&obj, "modes", "modes")?;
+    let Value::Array(items) = modes_value else {
+        return Err(reject(
+            "modes",
+            format!("expected an array, got {}", kind(modes_value)),
+        ));
+    };
+    if items.is_empty() {
+        return Err(reject("modes", "must not be empty"));
+    }
+    let modes = items
+        .iter()
+        .enumerate()
+        .map(|(i, v)| parse_mode(i, v, channels.len()))
+        .collect::<Result<Vec<_>, _>>()?;
+    check_frequency_order(&modes)?;
+    check_uncertainty_consistency(&modes)?;
+
+    let temperature_c = obj
+        .get("temperature_c")
+        .map(|v| number(v, "temperature_c"))
+        .transpose()?;
+    let source = obj
+        .get("source")
+        .map(|v| string(v, "source").map(str::to_string))
+        .transpose()?;
+
+    Ok(ModalSet {
+        structure: structure.to_string(),
+        time,
+        channels,
+        modes,
+        temperature_c,
+        source,
+    })
+}
+
+/// Parses and validates `modes[i]` on its own; `n_channels` is the length of `channels`.
+fn parse_mode(i: usize, v: &Value, n_channels: usize) -> Result<MeasuredMode, Rejection> {
+    let path = format!("modes[{i}]");
+    let Value::Object(obj) = v else {
+        return Err(reject(path, format!("expected an object, got {}", kind(v))));
+    };
+    no_unknown_fields(obj, MODE_FIELDS, &format!("{path}."))?;
+
+    let f_path = format!("{path}.frequency_hz");
+    let frequency_hz = positive(required(obj, "frequency_hz", &f_path)?, &f_path)?;
+    let frequency_cov = obj
+        .get("frequency_cov")
+        .map(|v| positive(v, &format!("{path}.frequency_cov")))
+        .transpose()?;
+
+    let shape = match obj.get("shape") {
+        None => None,
+        Some(v) => {
+            let s_path = format!("{path}.shape");
+            let Value::Array(entries) = v else {
+                return Err(reject(
+                    s_path,
+                    format!("expected an array, got {}", kind(v)),
+                ));
+            };
+            let mut shape = Vec::with_capacity(entries.len());
+            for (k, e) in entries.iter().enumerate() {
+                shape.push(match e {
+                    Value::Null => None,
+                    other => Some(number(other, &format!("{s_path}[{k}]")).map_err(|r| {
+                        if other.is_number() || nonfinite_token(other).is_some() {
+                            r
+                        } else {
+                            reject(
+                                r.field,
+                                format!("expected a number or null, got {}", kind(other)),
+                            )
+                        }
+                    })?),
+                });
+            }
+            if shape.is_empty() {
+                return Err(reject(
+                    s_path,
+                    "must not be empty (omit it for a frequency-only mode)",
+                ));
+            }
+            if shape.len() != n_channels {
+                return Err(reject(
+                    s_path,
+                    format!("has {} entries but channels has {n_channels}", shape.len()),
+                ));
+            }
+            if shape.iter().all(Option::is_none) {
+                return Err(reject(
+                    s_path,
+                    format!(
+                        "all {} entries are null (omit it for a frequency-only mode)",
+                        shape.len()
+                    ),
+                ));
+            }
+            Some(shape)
+        }
+    };
+
+    let nsd_path = format!("{path}.shape_nsd");
+    let shape_nsd = obj
+        .get("shape_nsd")
+        .map(|v| positive(v, &nsd_path))
+        .transpose()?;
+    if shape_nsd.is_some() && shape.is_none() {
+        return Err(reject(nsd_path, "present on a mode without a shape"));
+    }
+
+    Ok(MeasuredMode {
+        frequency_hz,
+        frequency_cov,
+        shape,
+        shape_nsd,
+    })
+}
+
+/// Rule: frequencies increase, equality within [`FREQUENCY_ORDER_TOLERANCE`] accepted.
+fn check_frequency_order(modes: &[MeasuredMode]) -> Result<(), Rejection> {
+    for (i, pair) in modes.windows(2).enumerate() {
+        let (prev, cur) = (pair[0].frequency_hz, pair[1].frequency_hz);
+        if cur < prev * (1.0 - FREQUENCY_ORDER_TOLERANCE) {
+            return Err(reject(
+                format!("modes[{}].frequency_hz", i + 1),
+                format!("frequencies must increase: {cur} after modes[{i}].frequency_hz = {prev}"),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Rule: `frequency_cov` on all modes or none; `shape_nsd` on all modes with a shape or none.
+fn check_uncertainty_consistency(modes: &[MeasuredMode]) -> Result<(), Rejection> {
+    let mixed = |i: usize, name: &str, first: usize, first_has: bool| {
+        let (here, there) = if first_has {
+            ("absent", "present")
+        } else {
+            ("present", "absent")
+        };
+        reject(
+            format!("modes[{i}].{name}"),
+            format!(
+                "present on some modes but not others ({here} here, {there} on modes[{first}])"
+            ),
+        )
+    };
+    if let Some(first) = modes.first() {
+        let has = first.frequency_cov.is_some();
+        if let Some(i) = modes.iter().position(|m| m.frequency_cov.is_some() != has) {
+            return Err(mixed(i, "frequency_cov", 0, has));
+        }
+    }
+    let mut shaped = modes.iter().enumerate().filter(|(_, m)| m.shape.is_some());
+    if let Some((first, m0)) = shaped.next() {
+        let has = m0.shape_nsd.is_some();
+        if let Some((i, _)) = shaped.find(|(_, m)| m.shape_nsd.is_some() != has) {
+            return Err(mixed(i, "shape_nsd", first, has));
+        }
+    }
+    Ok(())
+}
+
+impl ModalSet {
+    /// The set as a `boltwatch.modal_set.v1` JSON value (absent optionals omitted, unmeasured entries `null`), which parse_modal_set accepts back unchanged. time formatted RFC 3339 with `Z`, seconds precision unless sub-seconds are present.
+    ///
+    /// `channels` is omitted when empty. Numbers are written with the shortest
+    /// representation that reads back to the same `f64`.
+    pub fn to_json(&self) -> Value {
+        let mut obj = Map::new();
+        obj.insert("schema".into(), MODAL_SET_SCHEMA.into());
+        obj.insert("structure".into(), self.structure.clone().into());
+        obj.insert("time".into(), format_time(&self.time).into());
+        if !self.channels.is_empty() {
+            obj.insert("channels".into(), self.channels.clone().into());
+        }
+        let modes = self
+            .modes
+            .iter()
+            .map(|m| {
+                let mut mode = Map::new();
+                mode.insert("frequency_hz".into(), m.frequency_hz.into());
+                if let Some(cov) = m.frequency_cov {
+                    mode.insert("frequency_cov".into(), cov.into());
+                }
+                if let Some(shape) = &m.shape {
+                    let entries = shape
+                        .iter()
+                        .map(|e| e.map_or(Value::Null, Value::from))
+                        .collect();
+                    mode.insert("shape".into(), Value::Array(entries));
+                }
+                if let Some(nsd) = m.shape_nsd {
+                    mode.insert("shape_nsd".into(), nsd.into());
+                }
+                Value::Object(mode)
+            })
+            .collect();
+        obj.insert("modes".into(), Value::Array(modes));
+        if let Some(t) = self.temperature_c {
+            obj.insert("temperature_c".into(), t.into());
+        }
+        if let Some(s) = &self.source {
+            obj.insert("source".into(), s.clone().into());
+        }
+        Value::Object(obj)
+    }
+
+    /// True when every mode carries `frequency_cov` and every mode with a shape carries `shape_nsd` (weighting by the measurement covariance); false when none does.
+    ///
+    /// Also false for a set without modes, and for a set whose frequencies carry
+    /// uncertainties but whose shapes do not (the covariance weighting needs both).
+    pub fn has_uncertainties(&self) -> bool {
+        !self.modes.is_empty()
+            && self
+                .modes
+                .iter()
+                .all(|m| m.frequency_cov.is_some() && (m.shape.is_none() || m.shape_nsd.is_some()))
+    }
+}

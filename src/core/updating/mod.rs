@@ -1,0 +1,32 @@
+//! Model updating from modal data: mode matching (5)–(9), (15), (18)–(20).
+
+pub mod data;
+pub mod mode_matching;
+pub mod residual;
+
+pub use data::{MeasuredData, RawMode, TargetMode, TargetShape, Weighting};
+pub use mode_matching::{
+    ModeMatching, ModeMatchingOptions, ModeMatchingResult, StepControl, Termination,
+};
+pub use residual::{Evaluation, Evaluator};
+
+use crate::core::modal::ModalError;
+
+/// Failures of an update.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum UpdateError {
+    #[error(transparent)]
+    Modal(#[from] ModalError),
+    #[error("θ0 has {got} entries but the model has {expected} parameters")]
+    ThetaLength { expected: usize, got: usize },
+    #[error("θ0[{index}] = {value} must be a finite number > 0")]
+    ThetaNotPositive { index: usize, value: f64 },
+    #[error("the modal set has {modes} modes but the model has only {dofs} DOFs")]
+    TooManyModes { modes: usize, dofs: usize },
+    #[error("option {name} = {value} is invalid: {reason}")]
+    Option {
+        name: &'static str,
+        value: f64,
+        reason: &'static str,
+    },
+}

@@ -1,0 +1,327 @@
+//! Mode matching (paper §2.2, §2.6.1): minimize ε(θ) (5) over θ > 0.
+//!
+//! Default step control: Levenberg–Marquardt in `u = ln θ` (θ stays positive whatever the
+//! step; Marquardt's diagonal scaling; damping updated from the gain ratio as in Nielsen,
+//! "Damping parameter in Marquardt's method", IMM-REP-1999-05). It needs no tuning. The
+//! paper's Gauss–Newton (18)–(20) with a fixed κ is kept as [`StepControl::FixedKappa`] to
+//! reproduce it. Both stop when every `|Δθ_i| / θ_i < tol` (1e-5 in the paper); for
+//! Levenberg–Marquardt that test is applied to the undamped Gauss–Newton step, so heavy
+//! damping cannot fake convergence. The covariance is (15), `(Sᵀ Σ_M⁻¹ S)⁻¹`, at the final θ.
+//!
+//! Pairing (29) is redone at every evaluation, so ε(θ) is piecewise smooth; a trial is
+//! accepted only if ε decreases.
+
+use faer::linalg::solvers::{Llt, Solve};
+use faer::{Mat, Side};
+
+use super::UpdateError;
+use super::data::{MeasuredData, Weighting};
+use super::residual::{Evaluation, Evaluator};
+use crate::core::model::Model;
+
+/// Largest change of ln θ_i in one Levenberg–Marquardt step (a factor e² ≈ 7.4): a safety cap
+/// on top of the damping, so one wild linearization cannot send θ to 1e±30.
+const MAX_LOG_STEP: f64 = 2.0;
+
+/// How each step is chosen.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum StepControl {
+    /// Levenberg–Marquardt in ln θ (default).
+    LevenbergMarquardt,
+    /// Paper (20): θ_{k+1} = θ_k + κ Δθ_k with the Gauss–Newton step (19).
+    FixedKappa(f64),
+}
+
+/// Options of [`ModeMatching`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ModeMatchingOptions {
+    pub step: StepControl,
+    /// Stop when every |Δθ_i|/θ_i is below this (paper: 1e-5).
+    pub tol: f64,
+    pub max_iterations: usize,
+}
+
+impl Default for ModeMatchingOptions {
+    fn default() -> Self {
+        Self {
+            step: StepControl::LevenbergMarquardt,
+            tol: 1e-5,
+            max_iterations: 200,
+        }
+    }
+}
+
+/// Why the iteration stopped.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Termination {
+    Converged,
+    MaxIterations,
+    /// No step reduces ε (damping exhausted) before the convergence test holds.
+    Stalled,
+    /// Fixed-κ Gauss–Newton left θ > 0 or produced a non-finite step.
+    Diverged(String),
+}
+
+/// One accepted iterate.
+#[derive(Debug, Clone)]
+pub struct IterationRecord {
+    pub theta: Vec<f64>,
+    pub epsilon: f64,
+    /// Model mode (1-based) paired with each measured mode.
+    pub pairing: Vec<usize>,
+}
+
+/// Outcome of a mode-matching update.
+#[derive(Debug, Clone)]
+pub struct ModeMatchingResult {
+    pub theta: Vec<f64>,
+    /// Covariance (15) (scaled by ε/(N−N_θ) under weighting (9)); `None` if SᵀWS is singular.
+    pub covariance: Option<Mat<f64>>,
+    pub termination: Termination,
+    /// Accepted steps (Jacobian evaluations).
+    pub iterations: usize,
+    /// Residual evaluations (eigen solves), including rejected trials.
+    pub evaluations: usize,
+    /// The final residual.
+    pub last: Evaluation,
+    /// θ, ε and pairing at the start and after every accepted step.
+    pub history: Vec<IterationRecord>,
+}
+
+impl ModeMatchingResult {
+    pub fn converged(&self) -> bool {
+        self.termination == Termination::Converged
+    }
+    pub fn epsilon(&self) -> f64 {
+        self.last.epsilon
+    }
+    /// Standard deviations: square roots of the covariance diagonal (NaN if unavailable).
+    pub fn std(&self) -> Vec<f64> {
+        (0..self.theta.len())
+            .map(|i| {
+                self.covariance
+                    .as_ref()
+                    .map_or(f64::NAN, |c| c[(i, i)].sqrt())
+            })
+            .collect()
+    }
+}
+
+/// The mode-matching solver for one model; reuses its evaluator across updates.
+pub struct ModeMatching {
+    pub evaluator: Evaluator,
+}
+
+impl ModeMatching {
+    pub fn new(evaluator: Evaluator) -> Self {
+        Self { evaluator }
+    }
+
+    /// Minimizes ε from `theta0`.
+    pub fn run(
+        &mut self,
+        model: &Model,
+        data: &MeasuredData,
+        theta0: &[f64],
+        opts: &ModeMatchingOptions,
+    ) -> Result<ModeMatchingResult, UpdateError> {
+        check_theta(model, theta0)?;
+        if let StepControl::FixedKappa(k) = opts.step
+            && !(k.is_finite() && k > 0.0)
+        {
+            return Err(UpdateError::Option {
+                name: "kappa",
+                value: k,
+                reason: "must be a finite number > 0",
+            });
+        }
+        if !(opts.tol.is_finite() && opts.tol > 0.0) {
+            return Err(UpdateError::Option {
+                name: "tol",
+                value: opts.tol,
+                reason: "must be a finite number > 0",
+            });
+        }
+        let p = model.n_params();
+        let mut ev = self.evaluator.evaluate(model, data, theta0)?;
+        let mut evaluations = 1;
+        let mut history = vec![record(&ev)];
+        let mut iterations = 0;
+        let mut mu = 1e-3;
+        let mut nu = 2.0;
+        let termination = loop {
+            if iterations >= opts.max_iterations {
+                break Termination::MaxIterations;
+            }
+            let jac = self.evaluator.jacobian(model, data, &ev)?;
+            let theta = ev.theta.clone();
+            match opts.step {
+                StepControl::FixedKappa(kappa) => {
+                    let Some(step) = gauss_newton_step(&jac, &ev.r) else {
+                        break Termination::Diverged("SᵀWS is singular".into());
+                    };
+                    let new: Vec<f64> = (0..p).map(|i| theta[i] + kappa * step[i]).collect();
+                    if let Some(i) = new.iter().position(|v| !(v.is_finite() && *v > 0.0)) {
+                        break Termination::Diverged(format!(
+                            "θ{} = {} after step {}",
+                            i + 1,
+                            new[i],
+                            iterations + 1
+                        ));
+                    }
+                    let done = (0..p).all(|i| (new[i] - theta[i]).abs() / theta[i] < opts.tol);
+                    ev = self.evaluator.evaluate(model, data, &new)?;
+                    evaluations += 1;
+                    iterations += 1;
+                    history.push(record(&ev));
+                    if done {
+                        break Termination::Converged;
+                    }
+                }
+                StepControl::LevenbergMarquardt => {
+                    // In u = ln θ: J_u = J diag(θ).
+                    let mut ju = jac.clone();
+                    for l in 0..p {
+                        for i in 0..ju.nrows() {
+                            ju[(i, l)] *= theta[l];
+                        }
+                    }
+                    let a = ju.transpose() * &ju;
+                    let g = ju.transpose() * faer::ColRef::from_slice(&ev.r);
+                    // Convergence test on the undamped step.
+                    if let Some(gn) = gauss_newton_step(&ju, &ev.r)
+                        && gn.iter().all(|d| d.exp_m1().abs() < opts.tol)
+                    {
+                        let new: Vec<f64> = (0..p).map(|i| theta[i] * gn[i].exp()).collect();
+                        let trial = self.evaluator.evaluate(model, data, &new)?;
+                        evaluations += 1;
+                        if trial.epsilon <= ev.epsilon * (1.0 + 1e-12) {
+                            ev = trial;
+                            iterations += 1;
+                            history.push(record(&ev));
+                        }
+                        break Termination::Converged;
+                    }
+                    let dmax = (0..p).map(|i| a[(i, i)]).fold(0.0_f64, f64::max);
+                    let mut accepted = false;
+                    while mu < 1e16 {
+                        let mut damped = a.clone();
+                        for i in 0..p {
+                            damped[(i, i)] += mu * a[(i, i)].max(1e-12 * dmax);
+                        }
+                        let Ok(llt) = damped.llt(Side::Lower) else {
+                            mu *= nu;
+                            nu *= 2.0;
+                            continue;
+                        };
+                        let mut step = -g.clone();
+                        llt.solve_in_place(step.as_mat_mut());
+                        let cap = (0..p).map(|i| step[i].abs()).fold(0.0, f64::max);
+                        if cap > MAX_LOG_STEP {
+                            step *= faer::Scale(MAX_LOG_STEP / cap);
+                        }
+                        let new: Vec<f64> = (0..p).map(|i| theta[i] * step[i].exp()).collect();
+                        // Predicted decrease ‖r‖² − ‖r + J δ‖² = −(2δᵀg + δᵀAδ).
+                        let ad = &a * &step;
+                        let pred = -(2.0 * (step.transpose() * &g) + step.transpose() * &ad);
+                        let trial = match self.evaluator.evaluate(model, data, &new) {
+                            Ok(t) => t,
+                            // A trial θ the solver cannot handle is just a bad step.
+                            Err(_) => {
+                                evaluations += 1;
+                                mu *= nu;
+                                nu *= 2.0;
+                                continue;
+                            }
+                        };
+                        evaluations += 1;
+                        let actual = ev.epsilon - trial.epsilon;
+                        if actual > 0.0 && pred > 0.0 {
+                            let rho = actual / pred;
+                            mu *= (1.0 / 3.0_f64).max(1.0 - (2.0 * rho - 1.0).powi(3));
+                            nu = 2.0;
+                            ev = trial;
+                            accepted = true;
+                            break;
+                        }
+                        mu *= nu;
+                        nu *= 2.0;
+                    }
+                    if !accepted {
+                        break Termination::Stalled;
+                    }
+                    iterations += 1;
+                    history.push(record(&ev));
+                }
+            }
+        };
+        let covariance = self.covariance(model, data, &ev)?;
+        Ok(ModeMatchingResult {
+            theta: ev.theta.clone(),
+            covariance,
+            termination,
+            iterations,
+            evaluations,
+            last: ev,
+            history,
+        })
+    }
+
+    /// Covariance (15) at an evaluation: `(JᵀJ)⁻¹` with the whitened Jacobian `J`, formed by
+    /// solving against the identity with a Cholesky factorization (it is the inverse that is
+    /// wanted here). Under weighting (9) it is scaled by `ε/(N − N_θ)`.
+    pub fn covariance(
+        &mut self,
+        model: &Model,
+        data: &MeasuredData,
+        ev: &Evaluation,
+    ) -> Result<Option<Mat<f64>>, UpdateError> {
+        let jac = self.evaluator.jacobian(model, data, ev)?;
+        let a = jac.transpose() * &jac;
+        let Ok(llt) = a.llt(Side::Lower) else {
+            return Ok(None);
+        };
+        let p = a.nrows();
+        let mut cov = Mat::<f64>::identity(p, p);
+        llt.solve_in_place(cov.as_mut());
+        if let Weighting::Heuristic { .. } = data.weighting {
+            let dof = data.n_data().saturating_sub(p).max(1) as f64;
+            cov *= faer::Scale(ev.epsilon / dof);
+        }
+        Ok(Some(cov))
+    }
+}
+
+fn record(ev: &Evaluation) -> IterationRecord {
+    IterationRecord {
+        theta: ev.theta.clone(),
+        epsilon: ev.epsilon,
+        pairing: ev.pairing.iter().map(|k| k + 1).collect(),
+    }
+}
+
+/// The Gauss–Newton step (19), `(JᵀJ) Δ = −Jᵀ r`, by Cholesky; `None` if singular.
+fn gauss_newton_step(jac: &Mat<f64>, r: &[f64]) -> Option<Vec<f64>> {
+    let a = jac.transpose() * jac;
+    let llt: Llt<f64> = a.llt(Side::Lower).ok()?;
+    let mut g = -(jac.transpose() * faer::ColRef::from_slice(r));
+    llt.solve_in_place(g.as_mat_mut());
+    let v: Vec<f64> = (0..g.nrows()).map(|i| g[i]).collect();
+    v.iter().all(|x| x.is_finite()).then_some(v)
+}
+
+fn check_theta(model: &Model, theta: &[f64]) -> Result<(), UpdateError> {
+    if theta.len() != model.n_params() {
+        return Err(UpdateError::ThetaLength {
+            expected: model.n_params(),
+            got: theta.len(),
+        });
+    }
+    if let Some(i) = theta.iter().position(|v| !(v.is_finite() && *v > 0.0)) {
+        return Err(UpdateError::ThetaNotPositive {
+            index: i + 1,
+            value: theta[i],
+        });
+    }
+    Ok(())
+}
