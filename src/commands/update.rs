@@ -9,7 +9,8 @@ use super::{load_model, parse_theta, write_json};
 use crate::contract::modal_set::{ModalSet, ValidationContext, parse_modal_set};
 use crate::core::model::Model;
 use crate::core::updating::{
-    Evaluator, MeasuredData, ModeMatching, ModeMatchingOptions, RawMode, StepControl, Weighting,
+    Evaluator, MeasuredData, ModeMatching, ModeMatchingOptions, RawMode, StartPath, StepControl,
+    Weighting, chi2_bound,
 };
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -102,7 +103,17 @@ pub fn run(args: &UpdateArgs) -> Result<()> {
         max_iterations: args.max_iter,
     };
     let mut mm = ModeMatching::new(Evaluator::new(&model)?);
-    let res = mm.run(&model, &data, &theta0, &opts)?;
+    // The paper's fixed-κ Gauss–Newton runs as published; the default is globalized.
+    let (res, path) = match opts.step {
+        StepControl::FixedKappa(_) => (mm.run(&model, &data, &theta0, &opts)?, StartPath::Given),
+        StepControl::LevenbergMarquardt => mm.run_global(&model, &data, &theta0, &opts)?,
+    };
+    let start = match path {
+        StartPath::Given => "theta0".to_string(),
+        StartPath::Restart { value } => {
+            format!("restart from uniform θ = {value} (the run from θ0 ended in a local minimum)")
+        }
+    };
     let std = res.std();
     let last = &res.last;
     let modes: Vec<_> = set
@@ -128,6 +139,8 @@ pub fn run(args: &UpdateArgs) -> Result<()> {
         "termination": format!("{:?}", res.termination),
         "iterations": res.iterations,
         "evaluations": res.evaluations,
+        "start": start,
+        "chi2_bound": chi2_bound(data.n_data(), model.n_params()),
         "epsilon": res.epsilon(),
         "n_data": data.n_data(),
         "weighting": match data.weighting { Weighting::Covariance => "covariance (8)", Weighting::Heuristic { .. } => "heuristic (9)" },
@@ -139,6 +152,7 @@ pub fn run(args: &UpdateArgs) -> Result<()> {
     });
     write_json(&args.out, &out)?;
     print_table(&model, &set, &res, &std);
+    println!("found from: {start}");
     Ok(())
 }
 

@@ -1,3 +1,4 @@
+mod cli;
 mod common;
 mod fe;
 mod modal_set;

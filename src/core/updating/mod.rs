@@ -6,7 +6,8 @@ pub mod residual;
 
 pub use data::{MeasuredData, RawMode, TargetMode, TargetShape, Weighting};
 pub use mode_matching::{
-    ModeMatching, ModeMatchingOptions, ModeMatchingResult, StepControl, Termination,
+    ModeMatching, ModeMatchingOptions, ModeMatchingResult, StartPath, StepControl, Termination,
+    chi2_bound,
 };
 pub use residual::{Evaluation, Evaluator};
 
