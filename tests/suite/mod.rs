@@ -1,3 +1,5 @@
+mod calibration;
+mod cantilever_cases;
 mod cli;
 mod common;
 mod fe;
