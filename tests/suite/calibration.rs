@@ -10,21 +10,19 @@ const TRUTH: [f64; 17] = [
 ];
 
 /// Lab frame at one fixed truth, 9 modes, all 42 channels, 1 % frequency CoV and 5 % shape
-/// NSD noise with stated uncertainties equal to the noise; 200 independent noise draws
-/// (seeds 1000..1200), each updated from θ0 = 1 with default options. For each parameter,
+/// NSD noise with stated uncertainties equal to the noise; 1000 independent noise draws
+/// (seeds 1000..2000), each updated from θ0 = 1 with default options. For each parameter,
 /// the fraction of draws with |θ̂_l − θ_l| / σ_l < 1.96 (σ_l from that draw's covariance)
-/// must lie in [0.90, 0.99], and every draw must converge.
+/// must lie in [0.90, 0.98], the Monte Carlo std of θ̂_l over the mean σ_l in [0.85, 1.15],
+/// and every draw must converge.
 ///
-/// Tolerance: if (15) is calibrated, each count is binomial with n = 200 and p = 0.95, so
-/// each fraction has sd √(0.95·0.05/200) ≈ 0.015. The issue asks for [0.90, 0.98]; that is
-/// only +2 sd above 0.95, which 17 parameters breach by chance ~16 % of the time, and this
-/// run breaches it on θ12 (0.985; its Monte Carlo std / mean σ is 0.86, a mild
-/// overestimate still under investigation: issue 2 stays open). The asserted upper bound is
-/// 0.99 (+2.7 sd; P(≥ 199 of 200) ≈ 4e-4 per parameter). Per parameter, a calibrated
-/// estimator falls outside with probability ≈ 0.010 (P(≥ 197 of 200) ≈ 0.009, P(< 180)
-/// ≈ 0.001), so over 17 parameters up to ≈ 16 % if they were independent: the band, not
-/// the seeds, is what decides pass/fail. A covariance wrong by a factor 1.5 in σ
-/// (coverage 0.81 or 0.995) fails it.
+/// Tolerance: if (15) is calibrated, each count is binomial with p = 0.95; with n = 1000
+/// each fraction has sd √(0.95·0.05/1000) ≈ 0.0069, so the band is ±7 sd below and +4.3 sd
+/// above: a calibrated estimator passes with certainty for practical purposes, while a σ
+/// wrong by a factor 1.19 either way (coverage 0.90 or 0.98) fails. With the issue's 200
+/// draws the sd is 0.015 and 0.98 is only +2 sd: the first 200 of these draws put θ12 at
+/// 0.985 (MC std / mean σ = 0.86) by chance; over 1000 it is 0.952 (ratio 0.98). Measured
+/// (1000 draws): fractions 0.937–0.964, MC std / mean σ 0.970–1.039.
 #[test]
 fn covariance_is_calibrated_by_monte_carlo() {
     let model = load_model("lab-frame");
@@ -34,7 +32,7 @@ fn covariance_is_calibrated_by_monte_carlo() {
     let p = TRUTH.len();
     let mut mm = ModeMatching::new(Evaluator::new(&model).unwrap());
     let opts = ModeMatchingOptions::default();
-    let seeds = 1000..1200u64;
+    let seeds = 1000..2000u64;
     let n_draws = seeds.clone().count();
 
     let mut inside = vec![0usize; p];
@@ -61,6 +59,7 @@ fn covariance_is_calibrated_by_monte_carlo() {
 
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
     let mut bad = Vec::new();
+    let mut bad_ratio = Vec::new();
     println!(" l   truth   fraction  MC mean θ̂  MC std θ̂  mean σ   ratio");
     for l in 0..p {
         let frac = inside[l] as f64 / n_draws as f64;
@@ -74,8 +73,12 @@ fn covariance_is_calibrated_by_monte_carlo() {
             TRUTH[l],
             sd / s
         );
-        if !(0.90..=0.99).contains(&frac) {
+        if !(0.90..=0.98).contains(&frac) {
             bad.push((l + 1, frac));
+        }
+        // The std of a 1000-draw sample std is ≈ 2.2 % of it, so ± 15 % is ≈ 7 sd.
+        if !(0.85..=1.15).contains(&(sd / s)) {
+            bad_ratio.push((l + 1, sd / s));
         }
     }
     println!(
@@ -88,6 +91,10 @@ fn covariance_is_calibrated_by_monte_carlo() {
     );
     assert!(
         bad.is_empty(),
-        "coverage of the 95 % interval outside [0.90, 0.99] (parameter, fraction): {bad:?}"
+        "coverage of the 95 % interval outside [0.90, 0.98] (parameter, fraction): {bad:?}"
+    );
+    assert!(
+        bad_ratio.is_empty(),
+        "Monte Carlo std / mean σ outside [0.85, 1.15] (parameter, ratio): {bad_ratio:?}"
     );
 }

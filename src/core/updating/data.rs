@@ -10,9 +10,9 @@ pub struct TargetShape {
     pub channels: Vec<usize>,
     /// ψ̂ at those channels.
     pub values: Vec<f64>,
-    /// Standard deviation of every entry: `RMS(ψ̂)·S^w` by (28), or `(N_o‖ψ̂‖²/w_ψ)^{1/2}`
-    /// under weighting (9).
-    pub sigma: f64,
+    /// Standard deviation of each entry (the shape block of the diagonal of `Σ_M`):
+    /// `RMS(ψ̂)·S^w` for every entry by (28), or `(N_o‖ψ̂‖²/w_ψ)^{1/2}` under weighting (9).
+    pub sigma: Vec<f64>,
 }
 
 /// One measured mode.
@@ -83,9 +83,9 @@ impl MeasuredData {
                         _ => (n_o * sq / w_psi).sqrt(),
                     };
                     TargetShape {
+                        sigma: vec![sigma; channels.len()],
                         channels,
                         values,
-                        sigma,
                     }
                 });
                 TargetMode {

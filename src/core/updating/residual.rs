@@ -119,8 +119,8 @@ impl Evaluator {
                     read_channels(&eig, k, &s.channels, channels, &mut dphi_k);
                     let c = scale_factor(&s.values, &dphi_k);
                     scales.push(c);
-                    for (psi, dp) in s.values.iter().zip(&dphi_k) {
-                        r.push((psi - c * dp) / s.sigma);
+                    for ((psi, dp), sd) in s.values.iter().zip(&dphi_k).zip(&s.sigma) {
+                        r.push((psi - c * dp) / sd);
                     }
                 }
                 None => scales.push(f64::NAN),
@@ -148,7 +148,7 @@ impl Evaluator {
         let p = model.n_params();
         let n = model.n_dof();
         let channels = model.channels();
-        let mut jac = Mat::zeros(r_len(data), p);
+        let mut jac = Mat::zeros(data.n_data(), p);
         // Sensitivities per distinct paired model mode: ∂λ (p) and ∂φ at every channel.
         let mut cache: Vec<Option<(Vec<f64>, Mat<f64>)>> = vec![None; ev.eig.lambda.len()];
         let mut phi = vec![0.0; n];
@@ -202,7 +202,7 @@ impl Evaluator {
                         .sum::<f64>()
                         / norm2;
                     for (i, &ch) in s.channels.iter().enumerate() {
-                        jac[(row + i, l)] = -(c * dch[(ch, l)] + dc * dp[i]) / s.sigma;
+                        jac[(row + i, l)] = -(c * dch[(ch, l)] + dc * dp[i]) / s.sigma[i];
                     }
                 }
                 row += s.channels.len();
@@ -210,10 +210,6 @@ impl Evaluator {
         }
         Ok(jac)
     }
-}
-
-fn r_len(data: &MeasuredData) -> usize {
-    data.n_data()
 }
 
 /// `D φ_k` at the given channels into `out`.
