@@ -52,6 +52,7 @@ fn noisy_data(model: &Model) -> MeasuredData {
 }
 
 fn bench_update(c: &mut Criterion) {
+    boltwatch::core::sequential_numerics();
     let model = lab_frame();
     assert_eq!(model.n_params(), 17);
     assert_eq!(model.channels().len(), 42);

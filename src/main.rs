@@ -28,6 +28,7 @@ enum Command {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    boltwatch::core::sequential_numerics();
     let result = match &cli.command {
         Command::Simulate(a) => simulate::run(a),
         Command::Modes(a) => modes::run(a),

@@ -6,3 +6,11 @@ pub mod modal;
 pub mod model;
 pub mod simulate;
 pub mod updating;
+
+/// Runs faer's dense kernels on the calling thread. The matrices of a model update are small
+/// (at most a few hundred columns), and on this class of machine (2 cores) faer's
+/// fine-grained threading spent 30 % of an update in the kernel scheduler (measured with
+/// `perf` on the lab frame) for no gain. Concurrency in boltwatch is per structure instead.
+pub fn sequential_numerics() {
+    faer::set_global_parallelism(faer::Par::Seq);
+}

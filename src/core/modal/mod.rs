@@ -3,12 +3,30 @@
 //! method), MAC (26) and mode pairing (29).
 
 pub mod eigen;
+pub mod krylov;
 pub mod mac;
 pub mod sensitivity;
 
 pub use eigen::{DenseEigen, EigenPairs, EigenSolver};
+pub use krylov::SparseEigen;
 pub use mac::{mac, pair_modes};
 pub use sensitivity::Nelson;
+
+/// Models with at least this many DOFs get the sparse solver from [`solver_for`]. Below it
+/// the dense solver is as fast or faster from a cold start and is the reference.
+pub const SPARSE_FROM_DOF: usize = 2000;
+
+/// The eigen solver for a model, chosen by size: [`SparseEigen`] from
+/// [`SPARSE_FROM_DOF`] DOFs, [`DenseEigen`] below.
+pub fn solver_for(
+    model: &crate::core::model::Model,
+) -> Result<Box<dyn EigenSolver + Send>, ModalError> {
+    if model.n_dof() >= SPARSE_FROM_DOF {
+        Ok(Box::new(SparseEigen::new(model)?))
+    } else {
+        Ok(Box::new(DenseEigen::new(model)?))
+    }
+}
 
 /// Failures of the modal layer.
 #[derive(Debug, thiserror::Error, PartialEq)]

@@ -7,24 +7,48 @@
 //! component `k` of largest `|φ_k|` pinned to `v_k = 0` (row and column `k` replaced by the
 //! identity), and `c_l = −φᵀ M v_l` keeps the mass normalization. The result is exact (no
 //! modal truncation) for a simple eigenvalue, and needs only a sparse factorization of
-//! `K − λM`, so it serves large models too. The LU's symbolic part depends only on the
-//! pattern and is computed once per model.
+//! `K − λM`, so it serves large models too.
+//!
+//! The pinned matrix is symmetric but indefinite (the modes below λ give negative
+//! directions). It is factorized by a sparse `LDLᵀ` without pivoting (half the work of an
+//! LU, the usual practice for shifted stiffness matrices in structural eigen solvers),
+//! whose stability is checked on every solve through the normwise backward error
+//! `‖Av − f‖∞ / (‖|A||v|‖∞ + ‖f‖∞)` of the summed system (`v = Σ v_l`, `f = Σ f_l`: one
+//! generic right-hand side, as an unstable factorization spoils every solve); above
+//! `BACKWARD_TOL` (a tiny pivot grew the factors)
+//! the system is solved again by a sparse LU with partial pivoting. Both symbolic
+//! factorizations depend only on the pattern and are computed once per model.
 
+use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
+use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
 use faer::linalg::solvers::Solve;
 use faer::sparse::SparseColMatRef;
+use faer::sparse::linalg::cholesky::{
+    SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky,
+};
 use faer::sparse::linalg::solvers::{Lu, SymbolicLu};
-use faer::{Mat, MatMut};
+use faer::{Conj, Mat, MatMut, Par, Side};
 
 use super::ModalError;
 use crate::core::model::Model;
 use crate::core::model::sparse::{bilinear, spmv_add};
 
+/// Largest normwise backward error accepted from the unpivoted `LDLᵀ` solve; a stable
+/// solve gives ~1e-16 times a modest growth factor.
+pub const BACKWARD_TOL: f64 = 1e-12;
+
 /// Workspace for Nelson's method on one model.
 pub struct Nelson {
     symbolic: SymbolicLu<usize>,
+    cholesky: SymbolicCholesky<usize>,
+    l_values: Vec<f64>,
+    mem: MemBuffer,
     values: Vec<f64>,
     m_phi: Vec<f64>,
     rhs: Mat<f64>,
+    f: Mat<f64>,
+    /// Solves that fell back to the LU since this workspace was built.
+    pub lu_fallbacks: usize,
 }
 
 impl Nelson {
@@ -33,12 +57,29 @@ impl Nelson {
         let pattern = &model.union_pattern().pattern;
         let symbolic = SymbolicLu::try_new(pattern.symbolic())
             .map_err(|e| ModalError::Factorization(format!("{e:?}")))?;
+        let cholesky = factorize_symbolic_cholesky(
+            pattern.symbolic(),
+            Side::Lower,
+            SymmetricOrdering::Amd,
+            Default::default(),
+        )
+        .map_err(|e| ModalError::Factorization(format!("{e:?}")))?;
         let n = model.n_dof();
+        let p = model.n_params();
+        let mem = MemBuffer::new(StackReq::any_of(&[
+            cholesky.factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Default::default()),
+            cholesky.solve_in_place_scratch::<f64>(p, Par::Seq),
+        ]));
         Ok(Self {
             symbolic,
+            l_values: vec![0.0; cholesky.len_val()],
+            cholesky,
+            mem,
             values: vec![0.0; pattern.val().len()],
             m_phi: vec![0.0; n],
-            rhs: Mat::zeros(n, model.n_params()),
+            rhs: Mat::zeros(n, p),
+            f: Mat::zeros(n, p),
+            lu_fallbacks: 0,
         })
     }
 
@@ -79,8 +120,6 @@ impl Nelson {
             }
         }
         let a = SparseColMatRef::new(sym, &self.values);
-        let lu = Lu::try_new_with_symbolic(self.symbolic.clone(), a)
-            .map_err(|e| ModalError::Factorization(format!("{e:?}")))?;
 
         // Right-hand sides f_l = −(K_l − ∂λ_l M) φ with f_l[k] = 0.
         self.m_phi.iter_mut().for_each(|v| *v = 0.0);
@@ -95,10 +134,37 @@ impl Nelson {
             spmv_add(kl, phi, -1.0, &mut f);
             f[k] = 0.0;
             for (i, &v) in f.iter().enumerate() {
-                self.rhs[(i, l)] = v;
+                self.f[(i, l)] = v;
             }
         }
-        lu.solve_in_place(self.rhs.as_mut());
+        self.rhs.copy_from(&self.f);
+        let ldlt_ok = match self.cholesky.factorize_numeric_ldlt(
+            &mut self.l_values,
+            a,
+            Side::Lower,
+            LdltRegularization::default(),
+            Par::Seq,
+            MemStack::new(&mut self.mem),
+            Default::default(),
+        ) {
+            Ok(ldlt) => {
+                ldlt.solve_in_place_with_conj(
+                    Conj::No,
+                    self.rhs.as_mut(),
+                    Par::Seq,
+                    MemStack::new(&mut self.mem),
+                );
+                backward_error(a, self.rhs.as_ref(), self.f.as_ref()) <= BACKWARD_TOL
+            }
+            Err(_) => false,
+        };
+        if !ldlt_ok {
+            self.lu_fallbacks += 1;
+            let lu = Lu::try_new_with_symbolic(self.symbolic.clone(), a)
+                .map_err(|e| ModalError::Factorization(format!("{e:?}")))?;
+            self.rhs.copy_from(&self.f);
+            lu.solve_in_place(self.rhs.as_mut());
+        }
 
         // ∂φ_l = v_l + c_l φ, c_l = −φᵀ M v_l.
         for l in 0..p {
@@ -113,4 +179,33 @@ impl Nelson {
         }
         Ok(())
     }
+}
+
+/// Normwise backward error `‖A v − f‖∞ / (‖|A||v|‖∞ + ‖f‖∞)` for `v = Σ_l v_l`,
+/// `f = Σ_l f_l` over the columns of the solutions `v` of `A v = f`; infinite if not finite.
+fn backward_error(
+    a: SparseColMatRef<'_, usize, f64>,
+    v: faer::MatRef<'_, f64>,
+    f: faer::MatRef<'_, f64>,
+) -> f64 {
+    let n = a.nrows();
+    let sym = a.symbolic();
+    let mut r = vec![0.0; n];
+    let mut s = vec![0.0; n];
+    for j in 0..n {
+        let vj: f64 = v.row(j).iter().sum();
+        for (&i, &aij) in sym.row_idx_of_col_raw(j).iter().zip(a.val_of_col(j)) {
+            r[i] += aij * vj;
+            s[i] += (aij * vj).abs();
+        }
+    }
+    let mut num: f64 = 0.0;
+    let mut den: f64 = 0.0;
+    for i in 0..n {
+        let fi: f64 = f.row(i).iter().sum();
+        num = num.max((r[i] - fi).abs());
+        den = den.max(s[i]).max(fi.abs());
+    }
+    let e = if den > 0.0 { num / den } else { 0.0 };
+    if e.is_finite() { e } else { f64::INFINITY }
 }

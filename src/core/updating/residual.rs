@@ -10,7 +10,7 @@
 use faer::Mat;
 
 use super::data::MeasuredData;
-use crate::core::modal::{DenseEigen, EigenPairs, EigenSolver, ModalError, Nelson, mac};
+use crate::core::modal::{EigenPairs, EigenSolver, ModalError, Nelson, mac, solver_for};
 use crate::core::model::Model;
 
 /// The residual at one θ.
@@ -53,9 +53,9 @@ pub fn candidate_count(n_measured: usize, n_dof: usize) -> usize {
 }
 
 impl Evaluator {
-    /// A dense eigen solver and Nelson's method for `model`.
+    /// The eigen solver [`solver_for`] picks for `model`, and Nelson's method.
     pub fn new(model: &Model) -> Result<Self, ModalError> {
-        Self::with_solver(model, Box::new(DenseEigen::new(model)?))
+        Self::with_solver(model, solver_for(model)?)
     }
 
     /// Uses the given eigen solver.
