@@ -6,15 +6,10 @@
 
 use std::hint::black_box;
 
-use boltwatch::core::modal::DenseEigen;
 use boltwatch::core::model::Model;
-use boltwatch::core::simulate::{Noise, simulate_modes};
-use boltwatch::core::updating::{
-    Evaluator, MeasuredData, ModeMatching, ModeMatchingOptions, RawMode,
-};
+use boltwatch::core::simulate::{Noise, simulated_measured_data};
+use boltwatch::core::updating::{Evaluator, MeasuredData, ModeMatching, ModeMatchingOptions};
 use criterion::{Criterion, criterion_group, criterion_main};
-use rand::SeedableRng;
-use rand_chacha::ChaCha8Rng;
 
 const TRUTH: [f64; 17] = [
     0.8, 1.6, 0.7, 1.2, 0.5, 1.1, 2.5, 0.9, 1.4, 0.6, 1.8, 0.75, 1.3, 0.55, 1.05, 2.2, 0.95,
@@ -32,23 +27,11 @@ fn lab_frame() -> Model {
 }
 
 fn noisy_data(model: &Model) -> MeasuredData {
-    let mut solver = DenseEigen::new(model).unwrap();
-    let mut rng = ChaCha8Rng::seed_from_u64(42);
-    let noise = Noise {
+    let stated = Noise {
         frequency_cov: COV,
         shape_nsd: NSD,
     };
-    let modes = simulate_modes(model, &mut solver, &TRUTH, 9, noise, &mut rng).unwrap();
-    let raw: Vec<RawMode> = modes
-        .iter()
-        .map(|m| RawMode {
-            frequency_hz: m.frequency_hz,
-            frequency_cov: Some(COV),
-            shape: Some(m.shape.iter().copied().enumerate().collect()),
-            shape_nsd: Some(NSD),
-        })
-        .collect();
-    MeasuredData::new(&raw, 1.0)
+    simulated_measured_data(model, &TRUTH, 9, stated, true, 42).unwrap()
 }
 
 fn bench_update(c: &mut Criterion) {

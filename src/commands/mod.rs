@@ -4,11 +4,31 @@ pub mod modes;
 pub mod simulate;
 pub mod update;
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 
 use crate::core::model::Model;
+
+/// `--model M.toml [--theta a,b,…]`: a model evaluated at θ (default: its nominal θ).
+#[derive(Debug, clap::Args)]
+pub struct ModelAtTheta {
+    /// Model file (TOML).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Parameter values θ, comma separated (default: the model's nominal θ).
+    #[arg(long, allow_hyphen_values = true)]
+    pub theta: Option<String>,
+}
+
+impl ModelAtTheta {
+    /// Loads the model and parses θ against it.
+    pub fn load(&self) -> Result<(Model, Vec<f64>)> {
+        let model = load_model(&self.model)?;
+        let theta = parse_theta(&model, self.theta.as_deref(), "--theta")?;
+        Ok((model, theta))
+    }
+}
 
 /// Reads and assembles a model file.
 pub fn load_model(path: &Path) -> Result<Model> {

@@ -5,17 +5,13 @@ use std::path::PathBuf;
 use anyhow::{Result, bail};
 use serde_json::json;
 
-use super::{load_model, parse_theta, write_json};
+use super::{ModelAtTheta, write_json};
 use crate::core::modal::{DenseEigen, EigenSolver};
 
 #[derive(Debug, clap::Args)]
 pub struct ModesArgs {
-    /// Model file (TOML).
-    #[arg(long)]
-    pub model: PathBuf,
-    /// Parameter values θ, comma separated (default: nominal).
-    #[arg(long, allow_hyphen_values = true)]
-    pub theta: Option<String>,
+    #[command(flatten)]
+    pub at: ModelAtTheta,
     /// Number of modes.
     #[arg(short = 'n', long = "modes", default_value_t = 10)]
     pub n: usize,
@@ -25,8 +21,7 @@ pub struct ModesArgs {
 }
 
 pub fn run(args: &ModesArgs) -> Result<()> {
-    let model = load_model(&args.model)?;
-    let theta = parse_theta(&model, args.theta.as_deref(), "--theta")?;
+    let (model, theta) = args.at.load()?;
     if args.n == 0 || args.n > model.n_dof() {
         bail!(
             "-n = {} must be between 1 and the model's {} DOFs",

@@ -6,19 +6,15 @@ use anyhow::{Result, bail};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use super::{load_model, parse_theta, write_json};
+use super::{ModelAtTheta, write_json};
 use crate::contract::modal_set::{MeasuredMode, ModalSet};
 use crate::core::modal::DenseEigen;
 use crate::core::simulate::{Noise, simulate_modes};
 
 #[derive(Debug, clap::Args)]
 pub struct SimulateArgs {
-    /// Model file (TOML).
-    #[arg(long)]
-    pub model: PathBuf,
-    /// Parameter values θ, comma separated (default: the model's nominal θ).
-    #[arg(long, allow_hyphen_values = true)]
-    pub theta: Option<String>,
+    #[command(flatten)]
+    pub at: ModelAtTheta,
     /// Number of modes (the lowest ones).
     #[arg(long, default_value_t = 9)]
     pub modes: usize,
@@ -43,8 +39,7 @@ pub struct SimulateArgs {
 }
 
 pub fn run(args: &SimulateArgs) -> Result<()> {
-    let model = load_model(&args.model)?;
-    let theta = parse_theta(&model, args.theta.as_deref(), "--theta")?;
+    let (model, theta) = args.at.load()?;
     for (name, v) in [
         ("--freq-cov", args.freq_cov),
         ("--shape-nsd", args.shape_nsd),

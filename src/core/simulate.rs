@@ -4,11 +4,13 @@
 //! `S^w`, (27)–(28)), with independent standard normal ξ. Shapes are scaled so that their
 //! largest-magnitude entry is +1 before noise is added.
 
-use rand::Rng;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
-use crate::core::modal::{EigenSolver, ModalError};
+use crate::core::modal::{DenseEigen, EigenSolver, ModalError};
 use crate::core::model::Model;
+use crate::core::updating::{MeasuredData, RawMode};
 
 /// One simulated mode: frequency (Hz) and shape at every model channel, in model order.
 #[derive(Debug, Clone, PartialEq)]
@@ -68,4 +70,38 @@ pub fn simulate_modes(
         });
     }
     Ok(out)
+}
+
+/// Measured data for updating, simulated from `model` at `theta` at every channel with
+/// the uncertainties `stated` (frequency CoV, shape NSD) and, if `noisy`, noise of the same
+/// size drawn from ChaCha8 seeded with `seed`. For tests, benchmarks and studies.
+pub fn simulated_measured_data(
+    model: &Model,
+    theta: &[f64],
+    n_modes: usize,
+    stated: Noise,
+    noisy: bool,
+    seed: u64,
+) -> Result<MeasuredData, ModalError> {
+    let mut solver = DenseEigen::new(model)?;
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let noise = if noisy {
+        stated
+    } else {
+        Noise {
+            frequency_cov: 0.0,
+            shape_nsd: 0.0,
+        }
+    };
+    let modes = simulate_modes(model, &mut solver, theta, n_modes, noise, &mut rng)?;
+    let raw: Vec<RawMode> = modes
+        .iter()
+        .map(|m| RawMode {
+            frequency_hz: m.frequency_hz,
+            frequency_cov: Some(stated.frequency_cov),
+            shape: Some(m.shape.iter().copied().enumerate().collect()),
+            shape_nsd: Some(stated.shape_nsd),
+        })
+        .collect();
+    Ok(MeasuredData::new(&raw, 1.0))
 }

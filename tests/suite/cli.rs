@@ -17,6 +17,21 @@ fn tmp(name: &str) -> std::path::PathBuf {
     dir.join(name)
 }
 
+/// `boltwatch update --model M --data D -o OUT [extra…]`.
+fn update(model: &str, data: &str, out: &std::path::Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec![
+        "update",
+        "--model",
+        model,
+        "--data",
+        data,
+        "-o",
+        out.to_str().unwrap(),
+    ];
+    args.extend_from_slice(extra);
+    boltwatch(&args)
+}
+
 /// Noise-free data at a truth, updated from nominal θ: θ recovered to 1e-6 relative (as the
 /// recovery test), and the result carries the `boltwatch.update.v1` fields.
 #[test]
@@ -36,15 +51,7 @@ fn simulate_then_update_recovers_theta() {
         data.to_str().unwrap(),
     ]);
     assert!(s.status.success(), "{}", String::from_utf8_lossy(&s.stderr));
-    let u = boltwatch(&[
-        "update",
-        "--model",
-        &model,
-        "--data",
-        data.to_str().unwrap(),
-        "-o",
-        out.to_str().unwrap(),
-    ]);
+    let u = update(&model, data.to_str().unwrap(), &out, &[]);
     assert!(u.status.success(), "{}", String::from_utf8_lossy(&u.stderr));
     let stdout = String::from_utf8_lossy(&u.stdout);
     assert!(
@@ -79,15 +86,7 @@ fn rejected_modal_set_exits_2_naming_the_field() {
             "modes": [{"frequency_hz": 9.7, "frequency_cov": 0.01, "shape": [0.1, 0.2], "shape_nsd": 0.05}]}"#,
     )
     .unwrap();
-    let u = boltwatch(&[
-        "update",
-        "--model",
-        &model,
-        "--data",
-        data.to_str().unwrap(),
-        "-o",
-        tmp("r.json").to_str().unwrap(),
-    ]);
+    let u = update(&model, data.to_str().unwrap(), &tmp("r.json"), &[]);
     assert_eq!(u.status.code(), Some(2));
     let err = String::from_utf8_lossy(&u.stderr);
     assert!(
@@ -101,20 +100,11 @@ fn rejected_modal_set_exits_2_naming_the_field() {
 #[test]
 fn wrong_theta0_length_exits_2() {
     let model = model_path("lab-frame");
-    let u = boltwatch(&[
-        "update",
-        "--model",
-        &model,
-        "--data",
-        &format!(
-            "{}/recordings/lab-frame-modal-set.json",
-            env!("CARGO_MANIFEST_DIR")
-        ),
-        "--theta0",
-        "1,1",
-        "-o",
-        tmp("r2.json").to_str().unwrap(),
-    ]);
+    let data = format!(
+        "{}/recordings/lab-frame-modal-set.json",
+        env!("CARGO_MANIFEST_DIR")
+    );
+    let u = update(&model, &data, &tmp("r2.json"), &["--theta0", "1,1"]);
     assert_eq!(u.status.code(), Some(2));
     let err = String::from_utf8_lossy(&u.stderr);
     assert!(

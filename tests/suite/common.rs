@@ -72,11 +72,8 @@ pub fn bisect(f: impl Fn(f64) -> f64, mut a: f64, mut b: f64) -> f64 {
     0.5 * (a + b)
 }
 
-use boltwatch::core::modal::DenseEigen;
-use boltwatch::core::simulate::{Noise, simulate_modes};
-use boltwatch::core::updating::{MeasuredData, RawMode};
-use rand::SeedableRng;
-use rand_chacha::ChaCha8Rng;
+use boltwatch::core::simulate::{Noise, simulated_measured_data};
+use boltwatch::core::updating::MeasuredData;
 
 /// Measured data simulated from `model` at `theta` (all channels), with stated
 /// uncertainties `cov`/`nsd` and noise of the same size if `noisy`.
@@ -89,28 +86,9 @@ pub fn simulated_data(
     noisy: bool,
     seed: u64,
 ) -> MeasuredData {
-    let mut solver = DenseEigen::new(model).unwrap();
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let noise = if noisy {
-        Noise {
-            frequency_cov: cov,
-            shape_nsd: nsd,
-        }
-    } else {
-        Noise {
-            frequency_cov: 0.0,
-            shape_nsd: 0.0,
-        }
+    let stated = Noise {
+        frequency_cov: cov,
+        shape_nsd: nsd,
     };
-    let modes = simulate_modes(model, &mut solver, theta, n_modes, noise, &mut rng).unwrap();
-    let raw: Vec<RawMode> = modes
-        .iter()
-        .map(|m| RawMode {
-            frequency_hz: m.frequency_hz,
-            frequency_cov: Some(cov),
-            shape: Some(m.shape.iter().copied().enumerate().collect()),
-            shape_nsd: Some(nsd),
-        })
-        .collect();
-    MeasuredData::new(&raw, 1.0)
+    simulated_measured_data(model, theta, n_modes, stated, noisy, seed).unwrap()
 }

@@ -149,12 +149,15 @@ impl ModeMatching {
         let mut iterations = 0;
         let mut mu = 1e-3;
         let mut nu = 2.0;
+        // The Jacobian of the last iteration, reused for (15) if θ did not move after it.
+        let mut last_jac: Option<(Vec<f64>, Mat<f64>)> = None;
         let termination = loop {
             if iterations >= opts.max_iterations {
                 break Termination::MaxIterations;
             }
             let jac = self.evaluator.jacobian(model, data, &ev)?;
             let theta = ev.theta.clone();
+            last_jac = Some((theta.clone(), jac.clone()));
             match opts.step {
                 StepControl::FixedKappa(kappa) => {
                     let Some(step) = gauss_newton_step(&jac, &ev.r) else {
@@ -189,7 +192,7 @@ impl ModeMatching {
                     let a = ju.transpose() * &ju;
                     let g = ju.transpose() * faer::ColRef::from_slice(&ev.r);
                     // Convergence test on the undamped step.
-                    if let Some(gn) = gauss_newton_step(&ju, &ev.r)
+                    if let Some(gn) = solve_normal(&a, &g)
                         && gn.iter().all(|d| d.exp_m1().abs() < opts.tol)
                     {
                         let new: Vec<f64> = (0..p).map(|i| theta[i] * gn[i].exp()).collect();
@@ -255,7 +258,10 @@ impl ModeMatching {
                 }
             }
         };
-        let covariance = self.covariance(model, data, &ev)?;
+        let covariance = match last_jac {
+            Some((t, jac)) if t == ev.theta => covariance_from_jacobian(&jac, data, &ev),
+            _ => self.covariance(model, data, &ev)?,
+        };
         Ok(ModeMatchingResult {
             theta: ev.theta.clone(),
             covariance,
@@ -277,18 +283,7 @@ impl ModeMatching {
         ev: &Evaluation,
     ) -> Result<Option<Mat<f64>>, UpdateError> {
         let jac = self.evaluator.jacobian(model, data, ev)?;
-        let a = jac.transpose() * &jac;
-        let Ok(llt) = a.llt(Side::Lower) else {
-            return Ok(None);
-        };
-        let p = a.nrows();
-        let mut cov = Mat::<f64>::identity(p, p);
-        llt.solve_in_place(cov.as_mut());
-        if let Weighting::Heuristic { .. } = data.weighting {
-            let dof = data.n_data().saturating_sub(p).max(1) as f64;
-            cov *= faer::Scale(ev.epsilon / dof);
-        }
-        Ok(Some(cov))
+        Ok(covariance_from_jacobian(&jac, data, ev))
     }
 }
 
@@ -369,12 +364,38 @@ fn record(ev: &Evaluation) -> IterationRecord {
 }
 
 /// The Gauss–Newton step (19), `(JᵀJ) Δ = −Jᵀ r`, by Cholesky; `None` if singular.
+/// Covariance (15) from the whitened Jacobian at `ev` (see [`ModeMatching::covariance`]).
+fn covariance_from_jacobian(
+    jac: &Mat<f64>,
+    data: &MeasuredData,
+    ev: &Evaluation,
+) -> Option<Mat<f64>> {
+    let a = jac.transpose() * jac;
+    let llt = a.llt(Side::Lower).ok()?;
+    let p = a.nrows();
+    let mut cov = Mat::<f64>::identity(p, p);
+    llt.solve_in_place(cov.as_mut());
+    if let Weighting::Heuristic { .. } = data.weighting {
+        let dof = data.n_data().saturating_sub(p).max(1) as f64;
+        cov *= faer::Scale(ev.epsilon / dof);
+    }
+    Some(cov)
+}
+
+/// Gauss–Newton step (19)–(20) with κ = 1: `−(JᵀJ)⁻¹ Jᵀ r`.
 fn gauss_newton_step(jac: &Mat<f64>, r: &[f64]) -> Option<Vec<f64>> {
     let a = jac.transpose() * jac;
+    let g = jac.transpose() * faer::ColRef::from_slice(r);
+    solve_normal(&a, &g)
+}
+
+/// `−A⁻¹ g` for the normal matrix `A = JᵀJ` and gradient `g = Jᵀr` (None if `A` is not
+/// positive definite or the step is not finite).
+fn solve_normal(a: &Mat<f64>, g: &faer::Col<f64>) -> Option<Vec<f64>> {
     let llt: Llt<f64> = a.llt(Side::Lower).ok()?;
-    let mut g = -(jac.transpose() * faer::ColRef::from_slice(r));
-    llt.solve_in_place(g.as_mat_mut());
-    let v: Vec<f64> = (0..g.nrows()).map(|i| g[i]).collect();
+    let mut step = -g;
+    llt.solve_in_place(step.as_mat_mut());
+    let v: Vec<f64> = (0..step.nrows()).map(|i| step[i]).collect();
     v.iter().all(|x| x.is_finite()).then_some(v)
 }
 
