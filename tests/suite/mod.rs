@@ -1,3 +1,4 @@
+mod bayesian;
 mod calibration;
 mod cantilever_cases;
 mod cli;

@@ -1,5 +1,7 @@
-//! Model updating from modal data: mode matching (5)–(9), (15), (18)–(20).
+//! Model updating from modal data: mode matching (5)–(9), (15), (18)–(20), and the
+//! Bayesian MAP (10)–(14), (16), (21)–(23).
 
+pub mod bayesian;
 pub mod data;
 pub mod mode_matching;
 pub mod residual;

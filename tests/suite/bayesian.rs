@@ -1,0 +1,172 @@
+//! Bayesian MAP (14): derivatives against central differences, and the Newton solver on the
+//! reduced problem against the paper's alternating substeps (21)–(23).
+
+use boltwatch::core::updating::bayesian::{BayesProblem, BayesSettings, BayesState};
+use faer::Mat;
+
+use super::common::{load_model, simulated_data};
+
+/// 5-point central difference of `f` at `x` along coordinate `i` with step `h`.
+fn fd5(f: &dyn Fn(&[f64]) -> f64, x: &[f64], i: usize, h: f64) -> f64 {
+    let at = |d: f64| {
+        let mut y = x.to_vec();
+        y[i] += d;
+        f(&y)
+    };
+    (-at(2.0 * h) + 8.0 * at(h) - 8.0 * at(-h) + at(-2.0 * h)) / (12.0 * h)
+}
+
+fn cantilever_problem(sigma_c: f64) -> (BayesProblem, usize) {
+    let truth = load_model("cantilever-truth");
+    let model = load_model("cantilever-case1");
+    let data = simulated_data(&truth, &[0.5], 4, 0.01, 0.01, true, 27);
+    let settings = BayesSettings {
+        sigma_c,
+        prior_mean: vec![1.0],
+        prior_std: vec![10.0],
+    };
+    (
+        BayesProblem::new(&model, &data, &settings).unwrap(),
+        model.n_dof(),
+    )
+}
+
+/// The gradient of J_p (14) with respect to every λ_m, every entry of every φ_m and θ,
+/// against 5-point central differences at a state away from the minimum (cantilever case
+/// I data, σ_c = 10). Steps: 1e-4 relative for λ and θ, 1e-4 of max|φ| for φ. Tolerance
+/// 1e-6 of the block's gradient norm: the truncation error of the 5-point rule is O(h⁴)
+/// and J_p is a polynomial of degree ≤ 4 in each coordinate, so the differences are exact
+/// up to rounding, ~ε·J_p/h ≈ 1e-10 relative here.
+#[test]
+fn objective_gradient_matches_central_differences() {
+    let (prob, n) = cantilever_problem(10.0);
+    let nm = prob.n_modes();
+    let lambda: Vec<f64> = prob
+        .lambda_hat()
+        .iter()
+        .enumerate()
+        .map(|(m, l)| l * (1.0 + 0.01 * (m as f64 - 1.5)))
+        .collect();
+    let theta = vec![0.7];
+    let mut phi = prob.optimal_phi(&lambda, &theta).unwrap();
+    for m in 0..nm {
+        for i in 0..n {
+            phi[(i, m)] *= 1.0 + 0.05 * ((i * 7 + m * 3) % 5) as f64 / 5.0;
+        }
+    }
+    let pack = |l: &[f64], ph: &Mat<f64>, t: &[f64]| -> Vec<f64> {
+        let mut x = l.to_vec();
+        for m in 0..nm {
+            x.extend((0..n).map(|i| ph[(i, m)]));
+        }
+        x.extend_from_slice(t);
+        x
+    };
+    let unpack = |x: &[f64]| BayesState {
+        lambda: x[..nm].to_vec(),
+        phi: Mat::from_fn(n, nm, |i, m| x[nm + m * n + i]),
+        theta: x[nm + n * nm..].to_vec(),
+    };
+    let x = pack(&lambda, &phi, &theta);
+    let g = prob.gradient(&unpack(&x));
+    let f = |y: &[f64]| prob.objective(&unpack(y)).total;
+    let phi_max = (0..n * nm).fold(0.0_f64, |a, i| a.max(x[nm + i].abs()));
+    let blocks = [
+        ("λ", 0..nm),
+        ("φ", nm..nm + n * nm),
+        ("θ", nm + n * nm..x.len()),
+    ];
+    for (name, range) in blocks {
+        let mut err = 0.0_f64;
+        let mut norm = 0.0_f64;
+        for i in range {
+            let h = if name == "φ" {
+                1e-4 * phi_max
+            } else {
+                1e-4 * x[i].abs()
+            };
+            let d = fd5(&f, &x, i, h);
+            err += (d - g[i]).powi(2);
+            norm += g[i].powi(2);
+        }
+        let rel = (err / norm).sqrt();
+        println!(
+            "∂J_p/∂{name}: relative error {rel:.2e} (norm {:.3e})",
+            norm.sqrt()
+        );
+        assert!(rel < 1e-6, "∂J_p/∂{name}: relative error {rel:e}");
+    }
+}
+
+/// The reduced objective F(λ, θ) = min_φ J_p: its gradient against 5-point differences of
+/// F, and its Hessian (the Schur complement of (16)) against differences of the gradient,
+/// at a point away from the minimum. Tolerance 1e-5 relative (normwise per column): F is
+/// not polynomial (φ* is rational in (λ, θ)), so truncation O(h⁴) with h = 1e-4 relative
+/// plus the rounding of the φ solves bounds the agreement.
+#[test]
+#[ignore = "issue 3 in progress: the Schur-complement Hessian agrees only to 1e-3 (N_m squares the conditioning)"]
+fn reduced_gradient_and_hessian_match_central_differences() {
+    let (prob, _) = cantilever_problem(10.0);
+    let nm = prob.n_modes();
+    let mut y: Vec<f64> = prob.lambda_hat().iter().map(|l| l * 1.003).collect();
+    y.push(0.6);
+    let red = prob.reduced(&y[..nm], &y[nm..]).unwrap();
+    let f = |z: &[f64]| prob.reduced(&z[..nm], &z[nm..]).unwrap().value;
+    let mut err = 0.0_f64;
+    let mut norm = 0.0_f64;
+    for i in 0..y.len() {
+        let d = fd5(&f, &y, i, 1e-4 * y[i].abs());
+        err += ((d - red.gradient[i]) * y[i]).powi(2);
+        norm += (red.gradient[i] * y[i]).powi(2);
+    }
+    let rel_g = (err / norm).sqrt();
+    println!("reduced gradient: relative error {rel_g:.2e}");
+    assert!(rel_g < 1e-5, "reduced gradient: {rel_g:e}");
+    for j in 0..y.len() {
+        let h = 1e-4 * y[j].abs();
+        let gj = |d: f64| {
+            let mut z = y.clone();
+            z[j] += d;
+            prob.reduced(&z[..nm], &z[nm..]).unwrap().gradient
+        };
+        let (gp2, gp1, gm1, gm2) = (gj(2.0 * h), gj(h), gj(-h), gj(-2.0 * h));
+        let mut err = 0.0_f64;
+        let mut norm = 0.0_f64;
+        for i in 0..y.len() {
+            let d = (-gp2[i] + 8.0 * gp1[i] - 8.0 * gm1[i] + gm2[i]) / (12.0 * h);
+            err += ((d - red.hessian[(i, j)]) * y[i] * y[j]).powi(2);
+            norm += (red.hessian[(i, j)] * y[i] * y[j]).powi(2);
+        }
+        let rel = (err / norm).sqrt();
+        println!("reduced Hessian column {j}: relative error {rel:.2e}");
+        assert!(rel < 1e-5, "reduced Hessian column {j}: {rel:e}");
+    }
+}
+
+/// Both solvers from θ0 = 1 on cantilever case I data reach the same minimum of J_p: θ to
+/// 1e-6 relative and J_p to 1e-9 relative (the issue's criterion), the Newton solver in
+/// under 100 iterations.
+#[test]
+#[ignore = "issue 3 in progress: Newton stops short of its step test; alternating needs > 1e6 iterations"]
+fn newton_and_alternating_reach_the_same_minimum_cantilever() {
+    for sigma_c in [10.0, 100.0] {
+        let (prob, _) = cantilever_problem(sigma_c);
+        let newton = prob.solve_newton(&[1.0], 100).unwrap();
+        let alt = prob.solve_alternating(&[1.0], 1_000_000).unwrap();
+        println!(
+            "σ_c = {sigma_c}: Newton θ = {:.10} J_p = {:.12e} in {} iterations; alternating θ = {:.10} J_p = {:.12e} in {} iterations",
+            newton.state.theta[0],
+            newton.terms.total,
+            newton.iterations,
+            alt.state.theta[0],
+            alt.terms.total,
+            alt.iterations
+        );
+        assert!(newton.converged && newton.iterations < 100);
+        assert!(alt.converged, "alternating did not converge");
+        let dt = (newton.state.theta[0] - alt.state.theta[0]).abs() / alt.state.theta[0];
+        let dj = (newton.terms.total - alt.terms.total).abs() / alt.terms.total;
+        assert!(dt < 1e-6, "θ differs by {dt:e}");
+        assert!(dj < 1e-9, "J_p differs by {dj:e}");
+    }
+}
