@@ -104,7 +104,6 @@ fn objective_gradient_matches_central_differences() {
 /// not polynomial (φ* is rational in (λ, θ)), so truncation O(h⁴) with h = 1e-4 relative
 /// plus the rounding of the φ solves bounds the agreement.
 #[test]
-#[ignore = "issue 3 in progress: the Schur-complement Hessian agrees only to 1e-3 (N_m squares the conditioning)"]
 fn reduced_gradient_and_hessian_match_central_differences() {
     let (prob, _) = cantilever_problem(10.0);
     let nm = prob.n_modes();

@@ -21,7 +21,7 @@
 //! Linear algebra is dense (models up to a few hundred DOFs); `N_m` is formed from the
 //! dense `A_m`. The large model (issue 7) needs sparse φ-substeps.
 
-use faer::linalg::solvers::{Llt, Solve};
+use faer::linalg::solvers::Solve;
 use faer::{Col, Mat, Side};
 
 use super::data::MeasuredData;
@@ -82,8 +82,13 @@ struct ShapeRow {
     w: f64,
 }
 
-/// Per mode: `A_m = K(θ) − λ_m M` and the Cholesky factor of `N_m`.
-type PhiFactors = Vec<(Mat<f64>, Llt<f64>)>;
+/// Per mode: `A_m = K(θ) − λ_m M`, the full `Q` and the `n × n` triangle `R` of the QR
+/// factorization of `C_m = [σ_c⁻¹ A_m; W^{1/2} L_o]` (so `N_m = C_mᵀ C_m = RᵀR`).
+struct PhiFactor {
+    a: Mat<f64>,
+    q: Mat<f64>,
+    r: Mat<f64>,
+}
 
 /// The Bayesian MAP problem for one model and one modal set.
 pub struct BayesProblem {
@@ -289,19 +294,44 @@ impl BayesProblem {
         g
     }
 
-    /// The optimal φ for fixed `(λ, θ)`, substep (21), and the factorizations of `N_m`.
-    fn phi_star(&self, lambda: &[f64], k: &Mat<f64>) -> Result<(Mat<f64>, PhiFactors), BayesError> {
-        let mut phi = Mat::zeros(self.n, self.modes.len());
+    /// The optimal φ for fixed `(λ, θ)`, substep (21), and the factorizations. `φ_m`
+    /// minimizes `‖C_m φ − [0; W^{1/2} ψ̂]‖²`, solved by Householder QR of `C_m` rather than
+    /// through `N_m = C_mᵀC_m`, whose condition number (~1e14 for σ_c = 10 on the
+    /// cantilever) is the square of `C_m`'s.
+    fn phi_star(
+        &self,
+        lambda: &[f64],
+        k: &Mat<f64>,
+    ) -> Result<(Mat<f64>, Vec<PhiFactor>), BayesError> {
+        let n = self.n;
+        let sigma_inv = self.inv_s2.sqrt();
+        let mut phi = Mat::zeros(n, self.modes.len());
         let mut facts = Vec::with_capacity(self.modes.len());
         for (m, mode) in self.modes.iter().enumerate() {
             let a = k - &self.m * faer::Scale(lambda[m]);
-            let nmat = (&a * &a) * faer::Scale(self.inv_s2) + &mode.ltwl;
-            let llt = nmat
-                .llt(Side::Lower)
-                .map_err(|_| BayesError::PhiSystemSingular { mode: m + 1 })?;
-            let x = llt.solve(mode.ltw_psi.as_mat());
-            phi.col_mut(m).copy_from(x.col(0));
-            facts.push((a, llt));
+            let no = mode.rows.len();
+            let mut c = Mat::zeros(n + no, n);
+            let mut d = Col::<f64>::zeros(n + no);
+            c.submatrix_mut(0, 0, n, n)
+                .copy_from(&a * faer::Scale(sigma_inv));
+            for (i, row) in mode.rows.iter().enumerate() {
+                let sw = row.w.sqrt();
+                for &(j, cj) in &row.dofs {
+                    c[(n + i, j)] += sw * cj;
+                }
+                d[n + i] = sw * row.psi;
+            }
+            let qr = c.qr();
+            let q = qr.compute_Q();
+            let r = qr.thin_R().to_owned();
+            if (0..n).any(|i| !(r[(i, i)].abs() > 0.0 && r[(i, i)].is_finite())) {
+                return Err(BayesError::PhiSystemSingular { mode: m + 1 });
+            }
+            let mut x = q.subcols(0, n).transpose() * &d;
+            r.as_ref()
+                .solve_upper_triangular_in_place(x.as_mat_mut());
+            phi.col_mut(m).copy_from(&x);
+            facts.push(PhiFactor { a, q, r });
         }
         Ok((phi, facts))
     }
@@ -328,7 +358,7 @@ impl BayesProblem {
         let mut h = Mat::zeros(ny, ny);
         let s2 = self.inv_s2;
         for (m, mode) in self.modes.iter().enumerate() {
-            let (a, llt) = &facts[m];
+            let a = &facts[m].a;
             let ph = phi.col(m);
             let aphi = a * ph;
             let mphi = &self.m * ph;
@@ -339,38 +369,44 @@ impl BayesProblem {
             for l in 0..p {
                 g[nm + l] += 2.0 * s2 * (klphi[l].transpose() * &aphi);
             }
-            // Direct Hessian blocks J_yy.
-            h[(m, m)] += 2.0 * mode.w_lambda + 2.0 * s2 * mphi.squared_norm_l2();
-            for l in 0..p {
-                let v = -2.0 * s2 * (mphi.transpose() * &klphi[l]);
-                h[(m, nm + l)] += v;
-                h[(nm + l, m)] += v;
-                for q in 0..=l {
-                    let v = 2.0 * s2 * (klphi[l].transpose() * &klphi[q]);
-                    h[(nm + l, nm + q)] += v;
-                    if q != l {
-                        h[(nm + q, nm + l)] += v;
-                    }
+            // Hessian of F per mode, 2[‖Q₂ᵀJ_y‖² − X₁ᵀY − YᵀX₁ − YᵀY] (module docs), with
+            // J_y = [σ_c⁻¹(−Mφ | K_lφ); 0], X₁ = Q₁ᵀJ_y, Y = R⁻ᵀE,
+            // E = [−σ_c⁻² M A φ | σ_c⁻² K_l A φ]. The λ_m–λ_m entry also gets 2 w_λm.
+            let PhiFactor { a: _, q, r } = &facts[m];
+            let n = self.n;
+            let rows = q.nrows();
+            let sig = s2.sqrt();
+            let mut jy = Mat::zeros(rows, 1 + p);
+            let mut e = Mat::zeros(n, 1 + p);
+            let maphi = &self.m * &aphi;
+            for i in 0..n {
+                jy[(i, 0)] = -sig * mphi[i];
+                e[(i, 0)] = -s2 * maphi[i];
+            }
+            for (l, (kl, klp)) in self.k_params.iter().zip(&klphi).enumerate() {
+                let klaphi = kl * &aphi;
+                for i in 0..n {
+                    jy[(i, 1 + l)] = sig * klp[i];
+                    e[(i, 1 + l)] = s2 * klaphi[i];
                 }
             }
-            // Coupling J_φy: columns for λ_m and every θ_l; correction B ᵀ (2N)⁻¹ B.
-            let mut b = Mat::zeros(self.n, 1 + p);
-            let maphi = &self.m * &aphi;
-            let amphi = a * &mphi;
-            b.col_mut(0)
-                .copy_from((&maphi + &amphi) * faer::Scale(-2.0 * s2));
-            for (l, (kl, klp)) in self.k_params.iter().zip(&klphi).enumerate() {
-                let col = (kl * &aphi + a * klp) * faer::Scale(2.0 * s2);
-                b.col_mut(1 + l).copy_from(col);
-            }
-            let nb = llt.solve(&b);
-            let corr = (b.transpose() * &nb) * faer::Scale(0.5);
+            let qtj = q.transpose() * &jy;
+            let x1 = qtj.subrows(0, n);
+            let x2 = qtj.subrows(n, rows - n);
+            let mut y = e;
+            r.transpose()
+                .solve_lower_triangular_in_place(y.as_mut());
+            let block = x2.transpose() * x2
+                - x1.transpose() * &y
+                - y.transpose() * x1
+                - y.transpose() * &y;
             let idx = |j: usize| if j == 0 { m } else { nm + j - 1 };
             for i in 0..=p {
                 for j in 0..=p {
-                    h[(idx(i), idx(j))] -= corr[(i, j)];
+                    h[(idx(i), idx(j))] += 2.0 * block[(i, j)];
                 }
             }
+            h[(m, m)] += 2.0 * mode.w_lambda;
         }
         for l in 0..p {
             g[nm + l] += 2.0 * self.prior_w[l] * (theta[l] - self.prior_mean[l]);
