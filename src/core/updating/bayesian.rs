@@ -18,8 +18,11 @@
 //! The paper's substeps (22) and (23) carry two typos, corrected here from `∂J_p = 0`:
 //! in (22) `σ_c⁻¹ g_λ` is `σ_c⁻² g_λ`, and in (23) `G_θᵀ g_θ` is `σ_c⁻² G_θᵀ g_θ`.
 //!
-//! Linear algebra is dense (models up to a few hundred DOFs); `N_m` is formed from the
-//! dense `A_m`. The large model (issue 7) needs sparse φ-substeps.
+//! Linear algebra is dense (models up to a few hundred DOFs): each φ substep is a
+//! Householder QR of `C_m = [σ_c⁻¹ A_m; W^{1/2} L_o]`, and the Hessian of `F` is assembled
+//! from `Qᵀ J_y` and `R⁻ᵀ E` so that the large terms of the Schur complement cancel
+//! analytically, not in floating point (see [`BayesProblem::reduced`]). The large model
+//! (issue 7) needs sparse φ-substeps.
 
 use faer::linalg::solvers::Solve;
 use faer::{Col, Mat, Side};
@@ -328,8 +331,7 @@ impl BayesProblem {
                 return Err(BayesError::PhiSystemSingular { mode: m + 1 });
             }
             let mut x = q.subcols(0, n).transpose() * &d;
-            r.as_ref()
-                .solve_upper_triangular_in_place(x.as_mat_mut());
+            r.as_ref().solve_upper_triangular_in_place(x.as_mat_mut());
             phi.col_mut(m).copy_from(&x);
             facts.push(PhiFactor { a, q, r });
         }
@@ -341,8 +343,14 @@ impl BayesProblem {
         Ok(self.phi_star(lambda, &self.stiffness(theta))?.0)
     }
 
-    /// Reduced objective `F(λ, θ)` with its exact gradient and Hessian (the Schur
-    /// complement of (16) with φ eliminated; both are twice the paper's `H` convention).
+    /// Reduced objective `F(λ, θ)` with its exact gradient and Hessian, the Schur complement
+    /// of (16) with φ eliminated (twice the paper's `H`, which is the Hessian of `J_p/2`).
+    ///
+    /// Per mode, with `r_C = σ_c⁻¹ A φ` linear in `y` for fixed φ, `J_y = ∂[r_C; r_ψ]/∂y =
+    /// [σ_c⁻¹(−Mφ | K_lφ); 0]`, `C = QR` and `E = [−σ_c⁻² M A φ | σ_c⁻² K_l A φ]` (the
+    /// second-order coupling `Σ r_i ∂²r_i/∂φ∂y`): `J_φφ = 2CᵀC`, `J_φy = 2(CᵀJ_y + E)`,
+    /// `J_yy = 2J_yᵀJ_y` (+ `2w_λ` and the prior), and with `X₁ = Q₁ᵀJ_y`, `X₂ = Q₂ᵀJ_y`,
+    /// `Y = R⁻ᵀE` the Schur complement is `2[X₂ᵀX₂ − X₁ᵀY − YᵀX₁ − YᵀY]`.
     pub fn reduced(&self, lambda: &[f64], theta: &[f64]) -> Result<Reduced, BayesError> {
         let (nm, p) = (self.modes.len(), self.p);
         let k = self.stiffness(theta);
@@ -394,12 +402,9 @@ impl BayesProblem {
             let x1 = qtj.subrows(0, n);
             let x2 = qtj.subrows(n, rows - n);
             let mut y = e;
-            r.transpose()
-                .solve_lower_triangular_in_place(y.as_mut());
-            let block = x2.transpose() * x2
-                - x1.transpose() * &y
-                - y.transpose() * x1
-                - y.transpose() * &y;
+            r.transpose().solve_lower_triangular_in_place(y.as_mut());
+            let block =
+                x2.transpose() * x2 - x1.transpose() * &y - y.transpose() * x1 - y.transpose() * &y;
             let idx = |j: usize| if j == 0 { m } else { nm + j - 1 };
             for i in 0..=p {
                 for j in 0..=p {
@@ -443,6 +448,8 @@ pub struct BayesResult {
 /// Stopping rule of the Newton solver: every component of the undamped step below this,
 /// relative to `max(|y_i|, 1e-12·max|y|)`.
 pub const NEWTON_STEP_TOL: f64 = 1e-11;
+/// Stopping rule of the Newton solver: the predicted decrease of `F` relative to `F`.
+pub const NEWTON_DECREMENT_TOL: f64 = 1e-14;
 /// Stopping rule of the alternating solver, as published: every `|Δθ_l| < 1e-9`.
 pub const ALTERNATING_TOL: f64 = 1e-9;
 
@@ -466,13 +473,17 @@ impl BayesProblem {
         while iterations < max_iterations {
             let ny = y.len();
             let scale_y = y.iter().fold(0.0_f64, |a, v| a.max(v.abs()));
-            // Undamped Newton step for the stopping test.
+            // Undamped Newton step for the stopping test: converged when every component is
+            // below NEWTON_STEP_TOL relative, or the predicted decrease −gᵀΔ/2 is below
+            // NEWTON_DECREMENT_TOL of F (F cannot be lowered measurably any more).
             if let Ok(llt) = cur.hessian.llt(Side::Lower) {
                 let g = Col::from_fn(ny, |i| -cur.gradient[i]);
                 let step = llt.solve(g.as_mat());
+                let decrement: f64 = 0.5 * (0..ny).map(|i| g[i] * step[(i, 0)]).sum::<f64>();
                 if (0..ny).all(|i| {
                     step[(i, 0)].abs() <= NEWTON_STEP_TOL * y[i].abs().max(1e-12 * scale_y)
-                }) {
+                }) || decrement <= NEWTON_DECREMENT_TOL * cur.value.abs()
+                {
                     converged = true;
                     break;
                 }
