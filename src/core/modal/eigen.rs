@@ -85,12 +85,7 @@ impl EigenSolver for DenseEigen {
         n_modes: usize,
     ) -> Result<EigenPairs, ModalError> {
         let n = model.n_dof();
-        if n_modes > n {
-            return Err(ModalError::TooManyModes {
-                asked: n_modes,
-                available: n,
-            });
-        }
+        check_mode_count(n_modes, n)?;
         let q = (n_modes + GUARD_MODES).min(n);
         model.stiffness_dense_into(theta, self.k.as_mut());
         let llt: Llt<f64> = self
@@ -142,17 +137,8 @@ impl EigenSolver for DenseEigen {
         let mut a = evr.U().to_owned();
         lrl.transpose().solve_upper_triangular_in_place(a.as_mut());
         let s = evr.S().column_vector();
-        let mut lambda = Vec::with_capacity(n_modes);
-        for k in 0..n_modes {
-            let v = s[k];
-            if !(v.is_finite() && v > 0.0) {
-                return Err(ModalError::NotPositive {
-                    index: k + 1,
-                    value: v,
-                });
-            }
-            lambda.push(v);
-        }
+        let lambda: Vec<f64> = (0..n_modes).map(|k| s[k]).collect();
+        check_positive(&lambda)?;
         let mut phi = &x * a.subcols(0, n_modes);
         sign_convention(&mut phi);
         Ok(EigenPairs { lambda, phi })
@@ -209,6 +195,28 @@ pub(crate) fn symmetrize(a: &mut Mat<f64>) {
             a[(i, j)] = v;
             a[(j, i)] = v;
         }
+    }
+}
+
+/// `n_modes` must not exceed the model's `n` DOFs.
+pub(crate) fn check_mode_count(n_modes: usize, n: usize) -> Result<(), ModalError> {
+    if n_modes > n {
+        return Err(ModalError::TooManyModes {
+            asked: n_modes,
+            available: n,
+        });
+    }
+    Ok(())
+}
+
+/// Every eigenvalue must be finite and positive (K(θ) positive definite).
+pub(crate) fn check_positive(lambda: &[f64]) -> Result<(), ModalError> {
+    match lambda.iter().position(|v| !(v.is_finite() && *v > 0.0)) {
+        Some(k) => Err(ModalError::NotPositive {
+            index: k + 1,
+            value: lambda[k],
+        }),
+        None => Ok(()),
     }
 }
 

@@ -30,7 +30,9 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::ModalError;
-use super::eigen::{EigenPairs, EigenSolver, sign_convention, symmetrize};
+use super::eigen::{
+    EigenPairs, EigenSolver, check_mode_count, check_positive, sign_convention, symmetrize,
+};
 use crate::core::model::Model;
 use crate::core::model::sparse::{Csc, spmv_add};
 
@@ -190,12 +192,7 @@ impl EigenSolver for SparseEigen {
         n_modes: usize,
     ) -> Result<EigenPairs, ModalError> {
         let n = model.n_dof();
-        if n_modes > n {
-            return Err(ModalError::TooManyModes {
-                asked: n_modes,
-                available: n,
-            });
-        }
+        check_mode_count(n_modes, n)?;
         let q = (n_modes + MIN_GUARD.max(n_modes / 2)).min(n);
         let pattern = &model.union_pattern().pattern;
         model.shifted_stiffness_values(theta, 0.0, &mut self.k_values);
@@ -217,13 +214,7 @@ impl EigenSolver for SparseEigen {
         for cycle in 1..=MAX_CYCLES {
             // Basis of span{K⁻¹MX, (K⁻¹M)²X, …}.
             let mut basis = Basis::new(n, (depth * q).min(n));
-            let mut mx = Mat::zeros(n, q);
-            for j in 0..q {
-                let mut out = vec![0.0; n];
-                spmv_add(mass, &col(x.as_ref(), j), 1.0, &mut out);
-                mx.col_mut(j).iter_mut().zip(out).for_each(|(a, b)| *a = b);
-            }
-            basis.push_solved(mass, &llt, mx);
+            basis.push_solved(mass, &llt, mass * x.as_ref());
             let mut block_start = 0;
             for _ in 1..depth {
                 let block_end = basis.len;
@@ -269,14 +260,7 @@ impl EigenSolver for SparseEigen {
             // target (rounding noise).
             let stagnated = worst <= 16.0 && worst > 0.5 * worst_prev;
             if worst <= 1.0 || stagnated || m >= n {
-                for (j, &l) in lambda.iter().enumerate().take(n_modes) {
-                    if !(l.is_finite() && l > 0.0) {
-                        return Err(ModalError::NotPositive {
-                            index: j + 1,
-                            value: l,
-                        });
-                    }
-                }
+                check_positive(&lambda[..n_modes])?;
                 self.last_cycles = cycle;
                 let mut out = phi.subcols(0, n_modes).to_owned();
                 sign_convention(&mut out);

@@ -47,6 +47,8 @@ pub struct Nelson {
     m_phi: Vec<f64>,
     rhs: Mat<f64>,
     f: Mat<f64>,
+    /// Scratch of length n: one right-hand side, and the two sums of the backward error.
+    work: [Vec<f64>; 3],
     /// Solves that fell back to the LU since this workspace was built.
     pub lu_fallbacks: usize,
 }
@@ -77,6 +79,7 @@ impl Nelson {
             mem,
             values: vec![0.0; pattern.val().len()],
             m_phi: vec![0.0; n],
+            work: [vec![0.0; n], vec![0.0; n], vec![0.0; n]],
             rhs: Mat::zeros(n, p),
             f: Mat::zeros(n, p),
             lu_fallbacks: 0,
@@ -124,14 +127,14 @@ impl Nelson {
         // Right-hand sides f_l = −(K_l − ∂λ_l M) φ with f_l[k] = 0.
         self.m_phi.iter_mut().for_each(|v| *v = 0.0);
         spmv_add(model.mass(), phi, 1.0, &mut self.m_phi);
-        let mut f = vec![0.0; n];
+        let [f, r, s] = &mut self.work;
         for (l, dl) in dlambda.iter_mut().enumerate().take(p) {
             let kl = model.k_param(l);
             *dl = bilinear(kl, phi, phi);
             f.iter_mut()
                 .zip(&self.m_phi)
                 .for_each(|(fi, mp)| *fi = *dl * mp);
-            spmv_add(kl, phi, -1.0, &mut f);
+            spmv_add(kl, phi, -1.0, f);
             f[k] = 0.0;
             for (i, &v) in f.iter().enumerate() {
                 self.f[(i, l)] = v;
@@ -154,7 +157,7 @@ impl Nelson {
                     Par::Seq,
                     MemStack::new(&mut self.mem),
                 );
-                backward_error(a, self.rhs.as_ref(), self.f.as_ref()) <= BACKWARD_TOL
+                backward_error(a, self.rhs.as_ref(), self.f.as_ref(), r, s) <= BACKWARD_TOL
             }
             Err(_) => false,
         };
@@ -183,15 +186,18 @@ impl Nelson {
 
 /// Normwise backward error `‖A v − f‖∞ / (‖|A||v|‖∞ + ‖f‖∞)` for `v = Σ_l v_l`,
 /// `f = Σ_l f_l` over the columns of the solutions `v` of `A v = f`; infinite if not finite.
+/// `r` and `s` are scratch of length n.
 fn backward_error(
     a: SparseColMatRef<'_, usize, f64>,
     v: faer::MatRef<'_, f64>,
     f: faer::MatRef<'_, f64>,
+    r: &mut [f64],
+    s: &mut [f64],
 ) -> f64 {
     let n = a.nrows();
     let sym = a.symbolic();
-    let mut r = vec![0.0; n];
-    let mut s = vec![0.0; n];
+    r.iter_mut().for_each(|x| *x = 0.0);
+    s.iter_mut().for_each(|x| *x = 0.0);
     for j in 0..n {
         let vj: f64 = v.row(j).iter().sum();
         for (&i, &aij) in sym.row_idx_of_col_raw(j).iter().zip(a.val_of_col(j)) {

@@ -355,12 +355,10 @@ impl BayesProblem {
         let (nm, p) = (self.modes.len(), self.p);
         let k = self.stiffness(theta);
         let (phi, facts) = self.phi_star(lambda, &k)?;
-        let state = BayesState {
-            lambda: lambda.to_vec(),
-            phi: phi.clone(),
-            theta: theta.to_vec(),
-        };
-        let value = self.objective(&state).total;
+        // J_p (14) at (λ, φ*, θ), accumulated below from the per-mode products.
+        let mut value: f64 = (0..p)
+            .map(|l| self.prior_w[l] * (theta[l] - self.prior_mean[l]).powi(2))
+            .sum();
         let ny = nm + p;
         let mut g = vec![0.0; ny];
         let mut h = Mat::zeros(ny, ny);
@@ -371,9 +369,11 @@ impl BayesProblem {
             let aphi = a * ph;
             let mphi = &self.m * ph;
             let klphi: Vec<Col<f64>> = self.k_params.iter().map(|kl| kl * ph).collect();
+            let dl = mode.lambda_hat - lambda[m];
+            value +=
+                mode.w_lambda * dl * dl + self.shape_misfit(m, ph) + s2 * aphi.squared_norm_l2();
             // Gradient.
-            g[m] = -2.0 * mode.w_lambda * (mode.lambda_hat - lambda[m])
-                - 2.0 * s2 * (mphi.transpose() * &aphi);
+            g[m] = -2.0 * mode.w_lambda * dl - 2.0 * s2 * (mphi.transpose() * &aphi);
             for l in 0..p {
                 g[nm + l] += 2.0 * s2 * (klphi[l].transpose() * &aphi);
             }
