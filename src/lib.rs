@@ -5,3 +5,4 @@
 pub mod commands;
 pub mod contract;
 pub mod core;
+pub mod plot;

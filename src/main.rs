@@ -2,7 +2,7 @@
 
 use std::process::ExitCode;
 
-use boltwatch::commands::{modes, simulate, update};
+use boltwatch::commands::{bayes, modes, simulate, update};
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
@@ -24,6 +24,8 @@ enum Command {
     Modes(modes::ModesArgs),
     /// Update the model's parameters to a modal set.
     Update(update::UpdateArgs),
+    /// The σ_c study of the Bayesian MAP (paper Figs. 5, 7, 15, 18): JSON and an SVG plot.
+    SweepSigma(bayes::SweepArgs),
 }
 
 fn main() -> ExitCode {
@@ -33,6 +35,7 @@ fn main() -> ExitCode {
         Command::Simulate(a) => simulate::run(a),
         Command::Modes(a) => modes::run(a),
         Command::Update(a) => update::run(a),
+        Command::SweepSigma(a) => bayes::run_sweep(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -1,5 +1,6 @@
 //! The command-line commands (DESIGN §2): file I/O and tables around the pure core.
 
+pub mod bayes;
 pub mod modes;
 pub mod simulate;
 pub mod update;

@@ -17,6 +17,8 @@ use crate::core::updating::{
 pub enum Method {
     /// Sensitivity-based mode matching, paper §2.2.
     ModeMatching,
+    /// Bayesian MAP without mode matching, paper §2.3 (objective (14)).
+    Bayesian,
 }
 
 #[derive(Debug, clap::Args)]
@@ -39,14 +41,61 @@ pub struct UpdateArgs {
     /// Stop when every |Δθ_i|/θ_i is below this.
     #[arg(long, default_value_t = 1e-5)]
     pub tol: f64,
-    #[arg(long, default_value_t = 200)]
-    pub max_iter: usize,
+    /// Maximum iterations (default: 200; 10⁶ for `--solver alternating`).
+    #[arg(long)]
+    pub max_iter: Option<usize>,
     /// Shape weight w_ψ of weighting (9), used when the set carries no uncertainties.
     #[arg(long, default_value_t = 1.0)]
     pub shape_weight: f64,
     /// Output file (boltwatch.update.v1).
     #[arg(short, long)]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub bayes: super::bayes::BayesUpdateArgs,
+}
+
+/// A model, a validated modal set on it, its numbers as [`MeasuredData`], and θ0.
+pub struct Inputs {
+    pub model: Model,
+    pub set: ModalSet,
+    pub data: MeasuredData,
+    pub theta0: Vec<f64>,
+}
+
+/// Loads and validates `--model`, `--data` and `--theta0` (shape weight for weighting (9)).
+pub fn load_inputs(
+    model: &std::path::Path,
+    data: &std::path::Path,
+    theta0: Option<&str>,
+    shape_weight: f64,
+) -> Result<Inputs> {
+    let model = load_model(model)?;
+    let theta0 = parse_theta(&model, theta0, "--theta0")?;
+    let set = load_set(&model, data)?;
+    if !(shape_weight.is_finite() && shape_weight > 0.0) {
+        anyhow::bail!("--shape-weight = {shape_weight} must be a finite number > 0");
+    }
+    let data = measured_data(&set, &model, shape_weight);
+    Ok(Inputs {
+        model,
+        set,
+        data,
+        theta0,
+    })
+}
+
+/// Reads and validates a modal set against `model`.
+pub fn load_set(model: &Model, path: &std::path::Path) -> Result<ModalSet> {
+    let bytes =
+        std::fs::read(path).with_context(|| format!("cannot read modal set {}", path.display()))?;
+    let channels: Vec<String> = model.channels().iter().map(|c| c.name.clone()).collect();
+    let ctx = ValidationContext {
+        structures: &[model.name.as_str()],
+        model_channels: &channels,
+        last_time: None,
+        allow_equal_time: true,
+    };
+    parse_modal_set(&bytes, &ctx).with_context(|| format!("modal set {} rejected", path.display()))
 }
 
 /// The modal set's numbers in the model's channel indexing.
@@ -75,38 +124,37 @@ pub fn measured_data(set: &ModalSet, model: &Model, w_psi: f64) -> MeasuredData 
 }
 
 pub fn run(args: &UpdateArgs) -> Result<()> {
-    let model = load_model(&args.model)?;
-    let theta0 = parse_theta(&model, args.theta0.as_deref(), "--theta0")?;
-    let bytes = std::fs::read(&args.data)
-        .with_context(|| format!("cannot read modal set {}", args.data.display()))?;
-    let channels: Vec<String> = model.channels().iter().map(|c| c.name.clone()).collect();
-    let ctx = ValidationContext {
-        structures: &[model.name.as_str()],
-        model_channels: &channels,
-        last_time: None,
-        allow_equal_time: true,
-    };
-    let set = parse_modal_set(&bytes, &ctx)
-        .with_context(|| format!("modal set {} rejected", args.data.display()))?;
-    if !(args.shape_weight.is_finite() && args.shape_weight > 0.0) {
-        anyhow::bail!(
-            "--shape-weight = {} must be a finite number > 0",
-            args.shape_weight
-        );
+    let inputs = load_inputs(
+        &args.model,
+        &args.data,
+        args.theta0.as_deref(),
+        args.shape_weight,
+    )?;
+    match args.method {
+        Method::ModeMatching => run_mode_matching(args, &inputs),
+        Method::Bayesian => super::bayes::run_update(args, &inputs),
     }
-    let data = measured_data(&set, &model, args.shape_weight);
+}
+
+fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
+    let Inputs {
+        model,
+        set,
+        data,
+        theta0,
+    } = inputs;
     let opts = ModeMatchingOptions {
         step: args
             .kappa
             .map_or(StepControl::LevenbergMarquardt, StepControl::FixedKappa),
         tol: args.tol,
-        max_iterations: args.max_iter,
+        max_iterations: args.max_iter.unwrap_or(200),
     };
-    let mut mm = ModeMatching::new(Evaluator::new(&model)?);
+    let mut mm = ModeMatching::new(Evaluator::new(model)?);
     // The paper's fixed-κ Gauss–Newton runs as published; the default is globalized.
     let (res, path) = match opts.step {
-        StepControl::FixedKappa(_) => (mm.run(&model, &data, &theta0, &opts)?, StartPath::Given),
-        StepControl::LevenbergMarquardt => mm.run_global(&model, &data, &theta0, &opts)?,
+        StepControl::FixedKappa(_) => (mm.run(model, data, theta0, &opts)?, StartPath::Given),
+        StepControl::LevenbergMarquardt => mm.run_global(model, data, theta0, &opts)?,
     };
     let start = match path {
         StartPath::Given => "theta0".to_string(),
@@ -151,7 +199,7 @@ pub fn run(args: &UpdateArgs) -> Result<()> {
         "modes": modes,
     });
     write_json(&args.out, &out)?;
-    print_table(&model, &set, &res, &std);
+    print_table(model, set, &res, &std);
     println!("found from: {start}");
     Ok(())
 }

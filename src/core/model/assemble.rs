@@ -98,6 +98,17 @@ pub(super) fn assemble(spec: &ModelSpec) -> Result<Model, ModelError> {
     let springs = index_names("spring", spec.springs.iter().map(|s| s.name.as_str()))?;
     index_names("parameter", spec.parameters.iter().map(|p| p.name.as_str()))?;
     index_names("channel", spec.channels.iter().map(|c| c.name.as_str()))?;
+    for (key, v) in [
+        ("bayesian.sigma_c", spec.bayesian.sigma_c),
+        ("bayesian.prior_std", spec.bayesian.prior_std),
+    ] {
+        if let Some(v) = v.filter(|v| !(v.is_finite() && *v > 0.0)) {
+            return Err(invalid(
+                key,
+                format!("must be a finite number > 0 (got {v})"),
+            ));
+        }
+    }
 
     for (i, n) in spec.nodes.iter().enumerate() {
         if !(n.x.is_finite() && n.y.is_finite()) {
@@ -486,6 +497,7 @@ pub(super) fn assemble(spec: &ModelSpec) -> Result<Model, ModelError> {
         connections,
         channels,
         union,
+        bayesian: spec.bayesian.clone(),
     })
 }
 

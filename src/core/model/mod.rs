@@ -93,6 +93,8 @@ pub struct Model {
     channels: Vec<Channel>,
     /// Union of the patterns of K0, every K_l and M (positions 0, 1..=p, p+1 in `maps`).
     union: UnionPattern,
+    /// The model file's defaults for the Bayesian MAP.
+    pub bayesian: spec::BayesSpec,
 }
 
 impl Model {
@@ -132,6 +134,58 @@ impl Model {
     pub fn nominal_theta(&self) -> Vec<f64> {
         self.parameters.iter().map(|p| p.nominal).collect()
     }
+    /// What parameter `l` scales, as `(kind, name)` pairs: connection, member (modulus) or
+    /// spring names.
+    fn parameter_elements(&self, l: usize) -> Vec<(&'static str, String)> {
+        match &self.parameters[l].kind {
+            ParameterKind::Connections(idx) => idx
+                .iter()
+                .map(|&i| ("connection", self.connections[i].name.clone()))
+                .collect(),
+            ParameterKind::Modulus(m) => m.iter().map(|n| ("member", n.clone())).collect(),
+            ParameterKind::Springs(s) => s.iter().map(|n| ("spring", n.clone())).collect(),
+        }
+    }
+
+    /// A starting θ for this (finer) model from `coarse_theta` of a coarser
+    /// parameterization of the same structure (paper §4.2, stage I → stage II): each
+    /// parameter takes the value of the coarse parameter that scales everything it scales,
+    /// and its nominal value when no coarse parameter does (a parameter new at this stage).
+    /// Returns, per parameter, the value and the coarse parameter's index if any.
+    pub fn refine_theta(
+        &self,
+        coarse: &Model,
+        coarse_theta: &[f64],
+    ) -> Result<Vec<(f64, Option<usize>)>, ModelError> {
+        let coarse_sets: Vec<_> = (0..coarse.n_params())
+            .map(|c| coarse.parameter_elements(c))
+            .collect();
+        (0..self.n_params())
+            .map(|l| {
+                let mine = self.parameter_elements(l);
+                let covering: Vec<usize> = (0..coarse_sets.len())
+                    .filter(|&c| mine.iter().all(|e| coarse_sets[c].contains(e)))
+                    .collect();
+                match covering.as_slice() {
+                    [] => Ok((self.parameters[l].nominal, None)),
+                    [c] => Ok((coarse_theta[*c], Some(*c))),
+                    _ => Err(ModelError::Invalid {
+                        field: format!("parameters.{}", self.parameters[l].name),
+                        reason: format!(
+                            "covered by several parameters of the coarse model {} ({})",
+                            coarse.name,
+                            covering
+                                .iter()
+                                .map(|&c| coarse.parameters[c].name.as_str())
+                                .collect::<Vec<_>>()
+                                .join(", ")
+                        ),
+                    }),
+                }
+            })
+            .collect()
+    }
+
     /// `K0`, the part of the stiffness no parameter scales.
     pub fn k0(&self) -> &Csc {
         &self.k0

@@ -14,6 +14,7 @@
 //! [[parameters]] name = "C1L@J1L", connections = ["C1L@J1L"]
 //! [[parameters]] name = "E", members = ["C1L", "C2L"]     # scales E of those members
 //! [[channels]]  name = "C1L.1", at = "C1L.1", dir = "x"
+//! [bayesian]    sigma_c = 1e4, prior_std = 1000.0       # optional defaults for (14)
 //! ```
 //! Locations (`at`) are model nodes (`J1L`) or interior mesh nodes of a member, numbered
 //! from the member's `from` end (`C2L.3`). Directions are global: `x`, `y`, `rz`.
@@ -49,6 +50,18 @@ pub struct ModelSpec {
     pub parameters: Vec<ParameterSpec>,
     #[serde(default)]
     pub channels: Vec<ChannelSpec>,
+    /// Defaults of the Bayesian MAP (14) for this model; command-line flags override them.
+    #[serde(default)]
+    pub bayesian: BayesSpec,
+}
+
+/// `[bayesian] sigma_c = 1e4, prior_std = 1000.0`: σ_c and the prior standard deviation of
+/// every θ_l (`Σ_θ = diag(prior_std²)`), both optional.
+#[derive(Debug, Clone, Default, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BayesSpec {
+    pub sigma_c: Option<f64>,
+    pub prior_std: Option<f64>,
 }
 
 #[allow(non_snake_case)]

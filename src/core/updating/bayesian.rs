@@ -24,11 +24,22 @@
 //! analytically, not in floating point (see [`BayesProblem::reduced`]). The large model
 //! (issue 7) needs sparse φ-substeps.
 
-use faer::linalg::solvers::Solve;
-use faer::{Col, Mat, Side};
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::linalg::householder;
+use faer::linalg::solvers::{Qr, Solve};
+use faer::{Col, Conj, Mat, MatMut, Par, Side};
+
+mod covariance;
+mod sweep;
+pub use covariance::{LCurvePoint, ThresholdFree, Tsvd, l_curve_corner};
+pub use sweep::{
+    AlternatingRun, AutoSigma, SweepError, SweepPoint, SweepSettings, discrepancy_choice, log_grid,
+    sweep_sigma,
+};
 
 use super::data::MeasuredData;
 use crate::core::model::Model;
+use crate::core::model::sparse::{Csc, spmv_add};
 
 /// Failures of the Bayesian solver.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -41,6 +52,8 @@ pub enum BayesError {
     Setting { name: &'static str, value: f64 },
     #[error("prior has {got} entries but the model has {expected} parameters")]
     PriorLength { expected: usize, got: usize },
+    #[error("the Hessian of the reduced objective is not positive definite: not at a minimum")]
+    NotAMinimum,
 }
 
 /// The weights of (14) beyond the data: `σ_c` and the prior `θ0`, `Σ_θ = diag(prior_std²)`.
@@ -69,10 +82,6 @@ pub struct ObjectiveTerms {
 struct BayesMode {
     lambda_hat: f64,
     w_lambda: f64,
-    /// `L_oᵀ W ψ̂` (n).
-    ltw_psi: Col<f64>,
-    /// `L_oᵀ W L_o` (n × n).
-    ltwl: Mat<f64>,
     /// Rows of `L_o` with the measured entries.
     rows: Vec<ShapeRow>,
 }
@@ -85,21 +94,46 @@ struct ShapeRow {
     w: f64,
 }
 
-/// Per mode: `A_m = K(θ) − λ_m M`, the full `Q` and the `n × n` triangle `R` of the QR
-/// factorization of `C_m = [σ_c⁻¹ A_m; W^{1/2} L_o]` (so `N_m = C_mᵀ C_m = RᵀR`).
+/// Householder QR of `C_m = [σ_c⁻¹ A_m; W^{1/2} L_o]` (`(n + n_o) × n`), so that
+/// `N_m = C_mᵀ C_m = RᵀR`; `Q` is kept as its reflectors and applied, never formed.
 struct PhiFactor {
-    a: Mat<f64>,
-    q: Mat<f64>,
-    r: Mat<f64>,
+    qr: Qr<f64>,
+}
+
+impl PhiFactor {
+    /// `rhs ← Qᵀ rhs` (rhs has `n + n_o` rows).
+    fn apply_qt(&self, rhs: MatMut<'_, f64>) {
+        let basis = self.qr.Q_basis();
+        let coeff = self.qr.Q_coeff();
+        let mut mem = MemBuffer::new(
+            householder::apply_block_householder_sequence_transpose_on_the_left_in_place_scratch::<
+                f64,
+            >(basis.nrows(), coeff.nrows(), rhs.ncols()),
+        );
+        householder::apply_block_householder_sequence_transpose_on_the_left_in_place_with_conj(
+            basis,
+            coeff,
+            Conj::No,
+            rhs,
+            Par::Seq,
+            MemStack::new(&mut mem),
+        );
+    }
+
+    /// The `n × n` triangle `R`.
+    fn r(&self) -> faer::MatRef<'_, f64> {
+        let n = self.qr.thin_R().ncols();
+        self.qr.thin_R().submatrix(0, 0, n, n)
+    }
 }
 
 /// The Bayesian MAP problem for one model and one modal set.
 pub struct BayesProblem {
     n: usize,
     p: usize,
-    m: Mat<f64>,
-    k_params: Vec<Mat<f64>>,
-    k0: Mat<f64>,
+    model: Model,
+    /// Dense `M` and `K0`, for forming `A_m` in the φ substep's QR.
+    m_dense: Mat<f64>,
     modes: Vec<BayesMode>,
     inv_s2: f64,
     prior_mean: Vec<f64>,
@@ -122,7 +156,29 @@ pub struct Reduced {
     pub value: f64,
     pub gradient: Vec<f64>,
     pub hessian: Mat<f64>,
+    /// Sensitivity of the gradient to the data, `∂²F/∂y∂d` weighted by the data's standard
+    /// deviations: `cov(d) = Σ_M`, so `B Bᵀ` with `B = ∂²F/∂y∂d Σ_M^{1/2}` is the covariance
+    /// of the gradient under measurement noise (`ny × ny`).
+    pub data_sensitivity: Mat<f64>,
     pub phi: Mat<f64>,
+}
+
+/// `A x` for a sparse `A`, into a new vector.
+fn spmv(a: &Csc, x: &[f64]) -> Vec<f64> {
+    let mut y = vec![0.0; a.nrows()];
+    spmv_add(a, x, 1.0, &mut y);
+    y
+}
+
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+/// Per mode at `(λ_m, φ_m, θ)`: `Mφ`, `K_lφ` and `Aφ = K(θ)φ − λ_m Mφ`, all sparse products.
+struct ModeProducts {
+    mphi: Vec<f64>,
+    klphi: Vec<Vec<f64>>,
+    aphi: Vec<f64>,
 }
 
 impl BayesProblem {
@@ -158,18 +214,6 @@ impl BayesProblem {
                 value: s,
             });
         }
-        let m = model.mass_dense();
-        let mut k0 = Mat::zeros(n, n);
-        model.stiffness_dense_into(&vec![0.0; p], k0.as_mut());
-        let k_params = (0..p)
-            .map(|l| {
-                let mut unit = vec![0.0; p];
-                unit[l] = 1.0;
-                let mut kl = Mat::zeros(n, n);
-                model.stiffness_dense_into(&unit, kl.as_mut());
-                &kl - &k0
-            })
-            .collect();
         let channels = model.channels();
         let mut modes = Vec::with_capacity(data.modes.len());
         for (i, mode) in data.modes.iter().enumerate() {
@@ -177,34 +221,28 @@ impl BayesProblem {
                 .shape
                 .as_ref()
                 .ok_or(BayesError::NoShape { mode: i + 1 })?;
-            let mut ltwl = Mat::zeros(n, n);
-            let mut ltw_psi = Col::zeros(n);
-            let mut rows = Vec::with_capacity(shape.channels.len());
-            for ((&c, &psi), &sd) in shape.channels.iter().zip(&shape.values).zip(&shape.sigma) {
-                let w = 1.0 / (sd * sd);
-                let dofs = channels[c].dofs.clone();
-                for &(a, ca) in &dofs {
-                    ltw_psi[a] += w * psi * ca;
-                    for &(b, cb) in &dofs {
-                        ltwl[(a, b)] += w * ca * cb;
-                    }
-                }
-                rows.push(ShapeRow { dofs, psi, w });
-            }
+            let rows = shape
+                .channels
+                .iter()
+                .zip(&shape.values)
+                .zip(&shape.sigma)
+                .map(|((&c, &psi), &sd)| ShapeRow {
+                    dofs: channels[c].dofs.clone(),
+                    psi,
+                    w: 1.0 / (sd * sd),
+                })
+                .collect();
             modes.push(BayesMode {
                 lambda_hat: mode.lambda,
                 w_lambda: 1.0 / (mode.sigma_lambda * mode.sigma_lambda),
-                ltw_psi,
-                ltwl,
                 rows,
             });
         }
         Ok(Self {
             n,
             p,
-            m,
-            k_params,
-            k0,
+            m_dense: model.mass_dense(),
+            model: model.clone(),
             modes,
             inv_s2: 1.0 / (settings.sigma_c * settings.sigma_c),
             prior_mean: settings.prior_mean.clone(),
@@ -220,21 +258,84 @@ impl BayesProblem {
         self.p
     }
 
+    /// Number of measured scalars: one eigenvalue and the shape entries per mode.
+    pub fn n_data(&self) -> usize {
+        self.modes.iter().map(|m| 1 + m.rows.len()).sum()
+    }
+
+    /// MAC (26) of each most probable shape at the measured channels, `L_oφ_m`, to the
+    /// measured `ψ̂_m`.
+    pub fn mac_to_measured(&self, phi: &Mat<f64>) -> Vec<f64> {
+        self.modes
+            .iter()
+            .enumerate()
+            .map(|(m, mode)| {
+                let lphi: Vec<f64> = mode
+                    .rows
+                    .iter()
+                    .map(|row| row.dofs.iter().map(|&(i, c)| c * phi[(i, m)]).sum())
+                    .collect();
+                let psi: Vec<f64> = mode.rows.iter().map(|row| row.psi).collect();
+                crate::core::modal::mac::mac(&lphi, &psi)
+            })
+            .collect()
+    }
+
+    /// The expected measurement misfit `e_Mᵀ Σ_M⁻¹ e_M` at the MAP when the model class is
+    /// right and `σ_c → 0`: the χ² degrees of freedom `N_data − N_θ − N_m` (each φ_m's
+    /// scale is free, as the scale factor (7) of mode matching).
+    pub fn misfit_dof(&self) -> f64 {
+        self.n_data()
+            .saturating_sub(self.p + self.modes.len())
+            .max(1) as f64
+    }
+
+    /// Runs the chosen solver from `λ = λ̂`, `θ = theta0`.
+    pub fn solve(
+        &self,
+        solver: BayesSolver,
+        theta0: &[f64],
+        max_iterations: usize,
+    ) -> Result<BayesResult, BayesError> {
+        match solver {
+            BayesSolver::Newton => self.solve_newton(theta0, max_iterations),
+            BayesSolver::Alternating => self.solve_alternating(theta0, max_iterations),
+        }
+    }
+
     /// Measured eigenvalues λ̂.
     pub fn lambda_hat(&self) -> Vec<f64> {
         self.modes.iter().map(|m| m.lambda_hat).collect()
     }
 
-    fn stiffness(&self, theta: &[f64]) -> Mat<f64> {
-        let mut k = self.k0.clone();
-        for (kl, &t) in self.k_params.iter().zip(theta) {
-            k += kl * faer::Scale(t);
+    /// `M φ`, `K_l φ` and `A φ` for one mode.
+    fn products(&self, lambda: f64, phi: &[f64], theta: &[f64]) -> ModeProducts {
+        let mphi = spmv(self.model.mass(), phi);
+        let klphi: Vec<Vec<f64>> = (0..self.p)
+            .map(|l| spmv(self.model.k_param(l), phi))
+            .collect();
+        let mut aphi = spmv(self.model.k0(), phi);
+        for (kp, &t) in klphi.iter().zip(theta) {
+            aphi.iter_mut().zip(kp).for_each(|(a, k)| *a += t * k);
         }
-        k
+        aphi.iter_mut()
+            .zip(&mphi)
+            .for_each(|(a, m)| *a -= lambda * m);
+        ModeProducts { mphi, klphi, aphi }
+    }
+
+    /// `A x = K(θ)x − λ M x`.
+    fn apply_a(&self, lambda: f64, theta: &[f64], x: &[f64]) -> Vec<f64> {
+        let mut y = spmv(self.model.k0(), x);
+        for (l, &t) in theta.iter().enumerate() {
+            spmv_add(self.model.k_param(l), x, t, &mut y);
+        }
+        spmv_add(self.model.mass(), x, -lambda, &mut y);
+        y
     }
 
     /// `(ψ̂ − L_oφ)ᵀ W (ψ̂ − L_oφ)` for mode `m`.
-    fn shape_misfit(&self, m: usize, phi: faer::ColRef<'_, f64>) -> f64 {
+    fn shape_misfit(&self, m: usize, phi: &[f64]) -> f64 {
         self.modes[m]
             .rows
             .iter()
@@ -245,21 +346,23 @@ impl BayesProblem {
             .sum()
     }
 
+    fn prior_term(&self, theta: &[f64]) -> f64 {
+        (0..self.p)
+            .map(|l| self.prior_w[l] * (theta[l] - self.prior_mean[l]).powi(2))
+            .sum()
+    }
+
     /// The terms of (14) at a state.
     pub fn objective(&self, s: &BayesState) -> ObjectiveTerms {
-        let k = self.stiffness(&s.theta);
         let mut measurement = 0.0;
         let mut modelling = 0.0;
         for (m, mode) in self.modes.iter().enumerate() {
+            let phi: Vec<f64> = s.phi.col(m).iter().copied().collect();
             let dl = mode.lambda_hat - s.lambda[m];
-            measurement += mode.w_lambda * dl * dl + self.shape_misfit(m, s.phi.col(m));
-            let a = &k - &self.m * faer::Scale(s.lambda[m]);
-            let r = &a * s.phi.col(m);
-            modelling += r.squared_norm_l2();
+            measurement += mode.w_lambda * dl * dl + self.shape_misfit(m, &phi);
+            modelling += dot_self(&self.apply_a(s.lambda[m], &s.theta, &phi));
         }
-        let prior: f64 = (0..self.p)
-            .map(|l| self.prior_w[l] * (s.theta[l] - self.prior_mean[l]).powi(2))
-            .sum();
+        let prior = self.prior_term(&s.theta);
         ObjectiveTerms {
             measurement,
             modelling,
@@ -271,30 +374,39 @@ impl BayesProblem {
     /// Gradient of `J_p` with respect to `(λ, φ (column-major), θ)`.
     pub fn gradient(&self, s: &BayesState) -> Vec<f64> {
         let (n, nm, p) = (self.n, self.modes.len(), self.p);
-        let k = self.stiffness(&s.theta);
         let mut g = vec![0.0; nm + n * nm + p];
         for (m, mode) in self.modes.iter().enumerate() {
-            let phi = s.phi.col(m);
-            let a = &k - &self.m * faer::Scale(s.lambda[m]);
-            let aphi = &a * phi;
-            let mphi = &self.m * phi;
+            let phi: Vec<f64> = s.phi.col(m).iter().copied().collect();
+            let pr = self.products(s.lambda[m], &phi, &s.theta);
             g[m] = -2.0 * mode.w_lambda * (mode.lambda_hat - s.lambda[m])
-                - 2.0 * self.inv_s2 * (mphi.transpose() * &aphi);
-            // ∂/∂φ: 2σ⁻² A(Aφ) − 2 L_oᵀW(ψ̂ − L_oφ) = 2σ⁻² A²φ + 2(L_oᵀWL_o φ − L_oᵀWψ̂).
-            let gphi = (&a * &aphi) * faer::Scale(2.0 * self.inv_s2)
-                + (&mode.ltwl * phi - &mode.ltw_psi) * faer::Scale(2.0);
-            for i in 0..n {
-                g[nm + m * n + i] = gphi[i];
+                - 2.0 * self.inv_s2 * dot(&pr.mphi, &pr.aphi);
+            // ∂/∂φ: 2σ⁻² A(Aφ) − 2 L_oᵀW(ψ̂ − L_oφ).
+            let a_aphi = self.apply_a(s.lambda[m], &s.theta, &pr.aphi);
+            let gphi = &mut g[nm + m * n..nm + (m + 1) * n];
+            for (gi, v) in gphi.iter_mut().zip(&a_aphi) {
+                *gi = 2.0 * self.inv_s2 * v;
             }
-            for (l, kl) in self.k_params.iter().enumerate() {
-                let klphi = kl * phi;
-                g[nm + n * nm + l] += 2.0 * self.inv_s2 * (klphi.transpose() * &aphi);
+            for row in &mode.rows {
+                let r = row.psi - row.dofs.iter().map(|&(i, c)| c * phi[i]).sum::<f64>();
+                for &(i, c) in &row.dofs {
+                    gphi[i] -= 2.0 * row.w * r * c;
+                }
+            }
+            for l in 0..p {
+                g[nm + n * nm + l] += 2.0 * self.inv_s2 * dot(&pr.klphi[l], &pr.aphi);
             }
         }
         for l in 0..p {
             g[nm + n * nm + l] += 2.0 * self.prior_w[l] * (s.theta[l] - self.prior_mean[l]);
         }
         g
+    }
+
+    /// Dense `K(θ)`.
+    fn stiffness(&self, theta: &[f64]) -> Mat<f64> {
+        let mut k = Mat::zeros(self.n, self.n);
+        self.model.stiffness_dense_into(theta, k.as_mut());
+        k
     }
 
     /// The optimal φ for fixed `(λ, θ)`, substep (21), and the factorizations. `φ_m`
@@ -304,43 +416,43 @@ impl BayesProblem {
     fn phi_star(
         &self,
         lambda: &[f64],
-        k: &Mat<f64>,
+        theta: &[f64],
     ) -> Result<(Mat<f64>, Vec<PhiFactor>), BayesError> {
         let n = self.n;
+        let k = self.stiffness(theta);
         let sigma_inv = self.inv_s2.sqrt();
         let mut phi = Mat::zeros(n, self.modes.len());
         let mut facts = Vec::with_capacity(self.modes.len());
         for (m, mode) in self.modes.iter().enumerate() {
-            let a = k - &self.m * faer::Scale(lambda[m]);
             let no = mode.rows.len();
             let mut c = Mat::zeros(n + no, n);
-            let mut d = Col::<f64>::zeros(n + no);
+            let mut d = Mat::<f64>::zeros(n + no, 1);
             c.submatrix_mut(0, 0, n, n)
-                .copy_from(&a * faer::Scale(sigma_inv));
+                .copy_from((&k - &self.m_dense * faer::Scale(lambda[m])) * faer::Scale(sigma_inv));
             for (i, row) in mode.rows.iter().enumerate() {
                 let sw = row.w.sqrt();
                 for &(j, cj) in &row.dofs {
                     c[(n + i, j)] += sw * cj;
                 }
-                d[n + i] = sw * row.psi;
+                d[(n + i, 0)] = sw * row.psi;
             }
-            let qr = c.qr();
-            let q = qr.compute_Q();
-            let r = qr.thin_R().to_owned();
+            let fact = PhiFactor { qr: c.qr() };
+            let r = fact.r();
             if (0..n).any(|i| !(r[(i, i)].abs() > 0.0 && r[(i, i)].is_finite())) {
                 return Err(BayesError::PhiSystemSingular { mode: m + 1 });
             }
-            let mut x = q.subcols(0, n).transpose() * &d;
-            r.as_ref().solve_upper_triangular_in_place(x.as_mat_mut());
-            phi.col_mut(m).copy_from(&x);
-            facts.push(PhiFactor { a, q, r });
+            fact.apply_qt(d.as_mut());
+            let mut x = d.subrows(0, n).to_owned();
+            r.solve_upper_triangular_in_place(x.as_mut());
+            phi.col_mut(m).copy_from(x.col(0));
+            facts.push(fact);
         }
         Ok((phi, facts))
     }
 
     /// The optimal φ at `(λ, θ)` (substep (21)).
     pub fn optimal_phi(&self, lambda: &[f64], theta: &[f64]) -> Result<Mat<f64>, BayesError> {
-        Ok(self.phi_star(lambda, &self.stiffness(theta))?.0)
+        Ok(self.phi_star(lambda, theta)?.0)
     }
 
     /// Reduced objective `F(λ, θ)` with its exact gradient and Hessian, the Schur complement
@@ -351,67 +463,78 @@ impl BayesProblem {
     /// second-order coupling `Σ r_i ∂²r_i/∂φ∂y`): `J_φφ = 2CᵀC`, `J_φy = 2(CᵀJ_y + E)`,
     /// `J_yy = 2J_yᵀJ_y` (+ `2w_λ` and the prior), and with `X₁ = Q₁ᵀJ_y`, `X₂ = Q₂ᵀJ_y`,
     /// `Y = R⁻ᵀE` the Schur complement is `2[X₂ᵀX₂ − X₁ᵀY − YᵀX₁ − YᵀY]`.
+    ///
+    /// The data sensitivity: `∂F/∂y = ∂J_p/∂y` at `φ*` (envelope theorem) and
+    /// `∂φ*/∂ψ̂ = N⁻¹L_oᵀW`, so `∂²F/∂y∂ψ̂ = J_yφ N⁻¹ L_oᵀ W = 2 (X₁ + Y)ᵀ R⁻ᵀ L_oᵀ W`;
+    /// weighted by `Σ_ψ^{1/2} = W^{-1/2}` it is `2 (X₁ + Y)ᵀ R⁻ᵀ L_oᵀ W^{1/2}`. For the
+    /// eigenvalues `∂²F/∂λ_m∂λ̂_m = −2 w_λm`, weighted by `σ_λ = w_λ^{-1/2}`.
     pub fn reduced(&self, lambda: &[f64], theta: &[f64]) -> Result<Reduced, BayesError> {
-        let (nm, p) = (self.modes.len(), self.p);
-        let k = self.stiffness(theta);
-        let (phi, facts) = self.phi_star(lambda, &k)?;
+        let (n, nm, p) = (self.n, self.modes.len(), self.p);
+        let (phi, facts) = self.phi_star(lambda, theta)?;
         // J_p (14) at (λ, φ*, θ), accumulated below from the per-mode products.
-        let mut value: f64 = (0..p)
-            .map(|l| self.prior_w[l] * (theta[l] - self.prior_mean[l]).powi(2))
-            .sum();
+        let mut value = self.prior_term(theta);
         let ny = nm + p;
         let mut g = vec![0.0; ny];
         let mut h = Mat::zeros(ny, ny);
+        let mut sens = Mat::zeros(ny, self.n_data());
+        let mut col0 = 0;
         let s2 = self.inv_s2;
+        let sig = s2.sqrt();
+        let idx = |m: usize, j: usize| if j == 0 { m } else { nm + j - 1 };
         for (m, mode) in self.modes.iter().enumerate() {
-            let a = &facts[m].a;
-            let ph = phi.col(m);
-            let aphi = a * ph;
-            let mphi = &self.m * ph;
-            let klphi: Vec<Col<f64>> = self.k_params.iter().map(|kl| kl * ph).collect();
+            let ph: Vec<f64> = phi.col(m).iter().copied().collect();
+            let pr = self.products(lambda[m], &ph, theta);
             let dl = mode.lambda_hat - lambda[m];
-            value +=
-                mode.w_lambda * dl * dl + self.shape_misfit(m, ph) + s2 * aphi.squared_norm_l2();
+            value += mode.w_lambda * dl * dl + self.shape_misfit(m, &ph) + s2 * dot_self(&pr.aphi);
             // Gradient.
-            g[m] = -2.0 * mode.w_lambda * dl - 2.0 * s2 * (mphi.transpose() * &aphi);
+            g[m] = -2.0 * mode.w_lambda * dl - 2.0 * s2 * dot(&pr.mphi, &pr.aphi);
             for l in 0..p {
-                g[nm + l] += 2.0 * s2 * (klphi[l].transpose() * &aphi);
+                g[nm + l] += 2.0 * s2 * dot(&pr.klphi[l], &pr.aphi);
             }
-            // Hessian of F per mode, 2[‖Q₂ᵀJ_y‖² − X₁ᵀY − YᵀX₁ − YᵀY] (module docs), with
-            // J_y = [σ_c⁻¹(−Mφ | K_lφ); 0], X₁ = Q₁ᵀJ_y, Y = R⁻ᵀE,
-            // E = [−σ_c⁻² M A φ | σ_c⁻² K_l A φ]. The λ_m–λ_m entry also gets 2 w_λm.
-            let PhiFactor { a: _, q, r } = &facts[m];
-            let n = self.n;
-            let rows = q.nrows();
-            let sig = s2.sqrt();
+            // Hessian of F per mode (see above). The λ_m–λ_m entry also gets 2 w_λm.
+            let fact = &facts[m];
+            let rows = n + mode.rows.len();
             let mut jy = Mat::zeros(rows, 1 + p);
             let mut e = Mat::zeros(n, 1 + p);
-            let maphi = &self.m * &aphi;
+            let maphi = spmv(self.model.mass(), &pr.aphi);
             for i in 0..n {
-                jy[(i, 0)] = -sig * mphi[i];
+                jy[(i, 0)] = -sig * pr.mphi[i];
                 e[(i, 0)] = -s2 * maphi[i];
             }
-            for (l, (kl, klp)) in self.k_params.iter().zip(&klphi).enumerate() {
-                let klaphi = kl * &aphi;
+            for l in 0..p {
+                let klaphi = spmv(self.model.k_param(l), &pr.aphi);
                 for i in 0..n {
-                    jy[(i, 1 + l)] = sig * klp[i];
+                    jy[(i, 1 + l)] = sig * pr.klphi[l][i];
                     e[(i, 1 + l)] = s2 * klaphi[i];
                 }
             }
-            let qtj = q.transpose() * &jy;
-            let x1 = qtj.subrows(0, n);
-            let x2 = qtj.subrows(n, rows - n);
+            fact.apply_qt(jy.as_mut());
+            let x1 = jy.subrows(0, n);
+            let x2 = jy.subrows(n, rows - n);
             let mut y = e;
-            r.transpose().solve_lower_triangular_in_place(y.as_mut());
+            fact.r()
+                .transpose()
+                .solve_lower_triangular_in_place(y.as_mut());
             let block =
                 x2.transpose() * x2 - x1.transpose() * &y - y.transpose() * x1 - y.transpose() * &y;
-            let idx = |j: usize| if j == 0 { m } else { nm + j - 1 };
             for i in 0..=p {
                 for j in 0..=p {
-                    h[(idx(i), idx(j))] += 2.0 * block[(i, j)];
+                    h[(idx(m, i), idx(m, j))] += 2.0 * block[(i, j)];
                 }
             }
             h[(m, m)] += 2.0 * mode.w_lambda;
+            // Data sensitivity: λ̂_m, then ψ̂_m's entries: 2 (X₁+Y)ᵀ R⁻ᵀ L_oᵀ W^{1/2}.
+            sens[(m, col0)] = -2.0 * mode.w_lambda.sqrt();
+            let mut z = x1 + &y;
+            fact.r().solve_upper_triangular_in_place(z.as_mut()); // R⁻¹(X₁ + Y)
+            for (i, row) in mode.rows.iter().enumerate() {
+                let sw = row.w.sqrt();
+                for j in 0..=p {
+                    let v: f64 = row.dofs.iter().map(|&(d, c)| c * z[(d, j)]).sum();
+                    sens[(idx(m, j), col0 + 1 + i)] = 2.0 * sw * v;
+                }
+            }
+            col0 += 1 + mode.rows.len();
         }
         for l in 0..p {
             g[nm + l] += 2.0 * self.prior_w[l] * (theta[l] - self.prior_mean[l]);
@@ -421,9 +544,14 @@ impl BayesProblem {
             value,
             gradient: g,
             hessian: h,
+            data_sensitivity: sens,
             phi,
         })
     }
+}
+
+fn dot_self(a: &[f64]) -> f64 {
+    dot(a, a)
 }
 
 /// Which minimizer reached the MAP.
@@ -502,6 +630,12 @@ impl BayesProblem {
                 let g = Col::from_fn(ny, |i| -cur.gradient[i]);
                 let step = llt.solve(g.as_mat());
                 let trial_y: Vec<f64> = (0..ny).map(|i| y[i] + step[(i, 0)]).collect();
+                // θ > 0 and λ > 0 (K positive definite, modes of a stable structure): a
+                // step that leaves that region is rejected like one that does not descend.
+                if trial_y.iter().any(|v| !(*v > 0.0)) {
+                    mu = (mu * 10.0).max(1e-6);
+                    continue;
+                }
                 match self.reduced(&trial_y[..nm], &trial_y[nm..]) {
                     Ok(trial) if trial.value < cur.value => {
                         y = trial_y;
@@ -550,28 +684,28 @@ impl BayesProblem {
         while iterations < max_iterations {
             iterations += 1;
             // (21) φ for (λ_k, θ_k).
-            let k = self.stiffness(&theta);
-            phi = self.phi_star(&lambda, &k)?.0;
-            // (22) λ for (φ_{k+1}, θ_k).
-            for (m, mode) in self.modes.iter().enumerate() {
-                let ph = phi.col(m);
-                let mphi = &self.m * ph;
-                let kphi = &k * ph;
-                let g_lambda: f64 = mphi.transpose() * &kphi;
-                lambda[m] = (self.inv_s2 * g_lambda + mode.w_lambda * mode.lambda_hat)
-                    / (self.inv_s2 * mphi.squared_norm_l2() + mode.w_lambda);
-            }
-            // (23) θ for (λ_{k+1}, φ_{k+1}).
+            phi = self.phi_star(&lambda, &theta)?.0;
             let mut lhs = Mat::<f64>::zeros(p, p);
             let mut rhs = Col::<f64>::zeros(p);
-            for (m, &lambda_m) in lambda.iter().enumerate() {
-                let ph = phi.col(m);
-                let klphi: Vec<Col<f64>> = self.k_params.iter().map(|kl| kl * ph).collect();
-                let g_theta = &self.m * ph * faer::Scale(lambda_m) - &self.k0 * ph;
+            for (m, mode) in self.modes.iter().enumerate() {
+                let ph: Vec<f64> = phi.col(m).iter().copied().collect();
+                let pr = self.products(lambda[m], &ph, &theta);
+                // (22) λ for (φ_{k+1}, θ_k): with Aφ = Kφ − λMφ, g_λ = φᵀMKφ.
+                let g_lambda = dot(&pr.mphi, &pr.aphi) + lambda[m] * dot_self(&pr.mphi);
+                lambda[m] = (self.inv_s2 * g_lambda + mode.w_lambda * mode.lambda_hat)
+                    / (self.inv_s2 * dot_self(&pr.mphi) + mode.w_lambda);
+                // (23) θ for (λ_{k+1}, φ_{k+1}): g_θ = λMφ − K0φ.
+                let k0phi = spmv(self.model.k0(), &ph);
+                let g_theta: Vec<f64> = pr
+                    .mphi
+                    .iter()
+                    .zip(&k0phi)
+                    .map(|(mp, kp)| lambda[m] * mp - kp)
+                    .collect();
                 for l in 0..p {
-                    rhs[l] += self.inv_s2 * (klphi[l].transpose() * &g_theta);
+                    rhs[l] += self.inv_s2 * dot(&pr.klphi[l], &g_theta);
                     for q in 0..p {
-                        lhs[(l, q)] += self.inv_s2 * (klphi[l].transpose() * &klphi[q]);
+                        lhs[(l, q)] += self.inv_s2 * dot(&pr.klphi[l], &pr.klphi[q]);
                     }
                 }
             }

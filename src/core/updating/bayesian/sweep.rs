@@ -1,0 +1,251 @@
+//! The σ_c study of paper Figs. 5, 7, 15 and 18, and an automatic choice of σ_c.
+//!
+//! **Rule (discrepancy principle).** σ_c is the standard deviation allowed to the model
+//! equation's residual `e_C = (K(θ) − λM)φ`. Small σ_c trusts the model: the most probable
+//! modes are the model's, and the measurement misfit `e_Mᵀ Σ_M⁻¹ e_M` is what the model
+//! class leaves unexplained. Raising σ_c lets φ and λ absorb modelling error, and the misfit
+//! falls. The automatic σ_c is the **smallest** σ_c at which the misfit has fallen to its
+//! χ² expectation under measurement noise alone, `ν = N_data − N_θ − N_m`
+//! ([`BayesProblem::misfit_dof`]): just enough modelling-error allowance to explain the
+//! data to the noise level, and no more (a larger σ_c starts fitting the noise). If the
+//! misfit is already at or below ν at the bottom of the range, the model needs no allowance
+//! and the bottom is taken; if it is still above ν at the top, the top is taken and the
+//! rule is reported as not met.
+
+use super::{BayesError, BayesProblem, BayesSettings, BayesSolver, ObjectiveTerms};
+use crate::core::modal::ModalError;
+use crate::core::model::Model;
+use crate::core::updating::{Evaluator, MeasuredData};
+
+/// Failures of a sweep.
+#[derive(Debug, thiserror::Error)]
+pub enum SweepError {
+    #[error(transparent)]
+    Bayes(#[from] BayesError),
+    #[error("ε at the MAP θ: {0}")]
+    Modal(#[from] ModalError),
+    #[error("σ_c range: need 0 < from < to and at least 2 points (got {from} … {to}, {points})")]
+    Range { from: f64, to: f64, points: usize },
+}
+
+/// What a sweep solves at each σ_c.
+#[derive(Debug, Clone)]
+pub struct SweepSettings {
+    pub prior_mean: Vec<f64>,
+    pub prior_std: Vec<f64>,
+    /// Every solve starts here (cold start, so iteration counts compare across σ_c).
+    pub theta0: Vec<f64>,
+    pub newton_max_iterations: usize,
+    /// Also run the paper's alternating solver, to this many iterations.
+    pub alternating_max_iterations: Option<usize>,
+}
+
+/// The alternating solver's outcome at one σ_c.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AlternatingRun {
+    pub iterations: usize,
+    pub converged: bool,
+    pub theta: Vec<f64>,
+    pub total: f64,
+}
+
+/// One σ_c of the sweep (Newton solver), with ε (5) of the model at the MAP θ.
+#[derive(Debug, Clone)]
+pub struct SweepPoint {
+    pub sigma_c: f64,
+    pub theta: Vec<f64>,
+    pub lambda: Vec<f64>,
+    pub terms: ObjectiveTerms,
+    pub epsilon: f64,
+    /// MAC of each most probable shape to the measured one.
+    pub mac: Vec<f64>,
+    pub iterations: usize,
+    pub converged: bool,
+    pub alternating: Option<AlternatingRun>,
+}
+
+/// `points` values from `from` to `to`, equally spaced in log σ_c.
+pub fn log_grid(from: f64, to: f64, points: usize) -> Result<Vec<f64>, SweepError> {
+    if !(from > 0.0 && to > from && to.is_finite() && points >= 2) {
+        return Err(SweepError::Range { from, to, points });
+    }
+    let (a, b) = (from.ln(), to.ln());
+    Ok((0..points)
+        .map(|i| (a + (b - a) * i as f64 / (points - 1) as f64).exp())
+        .collect())
+}
+
+/// The MAP (Newton) at one σ_c, with ε of the model at its θ.
+fn point(
+    model: &Model,
+    data: &MeasuredData,
+    sigma_c: f64,
+    settings: &SweepSettings,
+    evaluator: &mut Evaluator,
+) -> Result<SweepPoint, SweepError> {
+    let prob = BayesProblem::new(
+        model,
+        data,
+        &BayesSettings {
+            sigma_c,
+            prior_mean: settings.prior_mean.clone(),
+            prior_std: settings.prior_std.clone(),
+        },
+    )?;
+    let res = prob.solve(
+        BayesSolver::Newton,
+        &settings.theta0,
+        settings.newton_max_iterations,
+    )?;
+    let alternating = match settings.alternating_max_iterations {
+        Some(max) => {
+            let alt = prob.solve(BayesSolver::Alternating, &settings.theta0, max)?;
+            Some(AlternatingRun {
+                iterations: alt.iterations,
+                converged: alt.converged,
+                theta: alt.state.theta,
+                total: alt.terms.total,
+            })
+        }
+        None => None,
+    };
+    let epsilon = evaluator.evaluate(model, data, &res.state.theta)?.epsilon;
+    Ok(SweepPoint {
+        sigma_c,
+        mac: prob.mac_to_measured(&res.state.phi),
+        theta: res.state.theta,
+        lambda: res.state.lambda,
+        terms: res.terms,
+        epsilon,
+        iterations: res.iterations,
+        converged: res.converged,
+        alternating,
+    })
+}
+
+/// The MAP at every σ_c of `sigmas`; `progress(i, point)` after each.
+pub fn sweep_sigma(
+    model: &Model,
+    data: &MeasuredData,
+    sigmas: &[f64],
+    settings: &SweepSettings,
+    progress: &mut dyn FnMut(usize, &SweepPoint),
+) -> Result<Vec<SweepPoint>, SweepError> {
+    let mut evaluator = Evaluator::new(model)?;
+    let mut out = Vec::with_capacity(sigmas.len());
+    for (i, &s) in sigmas.iter().enumerate() {
+        let p = point(model, data, s, settings, &mut evaluator)?;
+        progress(i, &p);
+        out.push(p);
+    }
+    Ok(out)
+}
+
+/// The automatic σ_c (module docs) and how it was found.
+#[derive(Debug, Clone)]
+pub struct AutoSigma {
+    pub sigma_c: f64,
+    /// The χ² expectation ν the misfit is held to.
+    pub target: f64,
+    /// The misfit `e_Mᵀ Σ_M⁻¹ e_M` at the chosen σ_c.
+    pub misfit: f64,
+    /// `false` when the misfit is still above ν at the top of the range.
+    pub met: bool,
+    /// Every σ_c tried, with its misfit.
+    pub trials: Vec<(f64, f64)>,
+}
+
+/// The discrepancy rule applied to a finished sweep (ascending σ_c): the first crossing of
+/// the misfit below `target`, interpolated linearly in `(log σ_c, log misfit)`.
+pub fn discrepancy_choice(points: &[SweepPoint], target: f64) -> Option<AutoSigma> {
+    let trials: Vec<(f64, f64)> = points
+        .iter()
+        .map(|p| (p.sigma_c, p.terms.measurement))
+        .collect();
+    let first = *trials.first()?;
+    let last = *trials.last()?;
+    let done = |sigma_c: f64, misfit: f64, met: bool| AutoSigma {
+        sigma_c,
+        target,
+        misfit,
+        met,
+        trials: trials.clone(),
+    };
+    if first.1 <= target {
+        return Some(done(first.0, first.1, true));
+    }
+    for w in trials.windows(2) {
+        let ((s0, m0), (s1, m1)) = (w[0], w[1]);
+        if m1 <= target {
+            let t = (m0.ln() - target.ln()) / (m0.ln() - m1.ln());
+            let s = (s0.ln() + t * (s1.ln() - s0.ln())).exp();
+            return Some(done(s, target, true));
+        }
+    }
+    Some(done(last.0, last.1, false))
+}
+
+impl AutoSigma {
+    /// The discrepancy rule by bisection in `log σ_c` on `[from, to]` (each trial one MAP
+    /// solve, warm-started from the nearest θ found so far), to `rel_tol` relative in σ_c.
+    pub fn search(
+        model: &Model,
+        data: &MeasuredData,
+        from: f64,
+        to: f64,
+        settings: &SweepSettings,
+        rel_tol: f64,
+    ) -> Result<Self, SweepError> {
+        log_grid(from, to, 2)?;
+        let mut trials = Vec::new();
+        let mut s = settings.clone();
+        s.alternating_max_iterations = None;
+        let mut eval = Evaluator::new(model)?;
+        let mut misfit_at = |sigma: f64, s: &mut SweepSettings| -> Result<f64, SweepError> {
+            let p = point(model, data, sigma, s, &mut eval)?;
+            s.theta0 = p.theta.clone();
+            trials.push((sigma, p.terms.measurement));
+            Ok(p.terms.measurement)
+        };
+        let target = {
+            let prob = BayesProblem::new(
+                model,
+                data,
+                &BayesSettings {
+                    sigma_c: from,
+                    prior_mean: s.prior_mean.clone(),
+                    prior_std: s.prior_std.clone(),
+                },
+            )?;
+            prob.misfit_dof()
+        };
+        let m_lo = misfit_at(from, &mut s)?;
+        let (sigma, misfit, met) = if m_lo <= target {
+            (from, m_lo, true)
+        } else {
+            let m_hi = misfit_at(to, &mut s)?;
+            if m_hi > target {
+                (to, m_hi, false)
+            } else {
+                let (mut lo, mut hi, mut m_at_hi) = (from.ln(), to.ln(), m_hi);
+                while hi - lo > rel_tol.ln_1p() {
+                    let mid = 0.5 * (lo + hi);
+                    let m = misfit_at(mid.exp(), &mut s)?;
+                    if m <= target {
+                        (hi, m_at_hi) = (mid, m);
+                    } else {
+                        lo = mid;
+                    }
+                }
+                (hi.exp(), m_at_hi, true)
+            }
+        };
+        Ok(Self {
+            sigma_c: sigma,
+            target,
+            misfit,
+            met,
+            trials,
+        })
+    }
+}
