@@ -13,8 +13,8 @@ use super::update::{Inputs, UpdateArgs, load_inputs, load_set, measured_data};
 use super::{load_model, parse_theta, write_json};
 use crate::core::model::Model;
 use crate::core::updating::bayesian::{
-    AutoSigma, BayesProblem, BayesResult, BayesSettings, BayesSolver, SweepPoint, SweepSettings,
-    discrepancy_choice, log_grid, sweep_sigma,
+    AutoSigma, BayesProblem, BayesResult, BayesSettings, BayesSolver, ContinuationStage,
+    SweepPoint, SweepSettings, discrepancy_choice, log_grid, sweep_sigma,
 };
 use crate::core::updating::{Evaluator, MeasuredData, ModeMatching, ModeMatchingOptions};
 use crate::plot::{Panel, Scale, Series, figure_svg};
@@ -163,6 +163,16 @@ fn auto_json(auto: &Option<AutoSigma>) -> Value {
     }
 }
 
+/// The σ_c continuation of a Newton solve (one stage when the cold start converged).
+fn stages_json(stages: &[ContinuationStage]) -> Value {
+    stages
+        .iter()
+        .map(
+            |s| json!({"sigma_c": s.sigma_c, "iterations": s.iterations, "converged": s.converged}),
+        )
+        .collect()
+}
+
 fn num_or_null(v: f64) -> Value {
     if v.is_finite() { json!(v) } else { Value::Null }
 }
@@ -208,7 +218,7 @@ fn stage_one(args: &UpdateArgs, fine: &Model, max_iter: usize) -> Result<StageOn
         parse_range(&b.sigma_range)?,
         &settings,
     )?;
-    let prob = BayesProblem::new(
+    let mut prob = BayesProblem::new(
         &coarse,
         &data,
         &BayesSettings {
@@ -296,7 +306,7 @@ pub fn run_update(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
         parse_range(&b.sigma_range)?,
         &settings,
     )?;
-    let prob = BayesProblem::new(
+    let mut prob = BayesProblem::new(
         model,
         data,
         &BayesSettings {
@@ -373,12 +383,13 @@ pub fn run_update(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
             "modelling_error": res.terms.modelling,
             "prior_term": res.terms.prior,
             "misfit_dof": prob.misfit_dof(),
+            "continuation": stages_json(&res.stages),
             "tsvd": tsvd.as_ref().map(|t| json!({
                 "s_tol": t.s_tol(),
                 "kept": t.curve[t.chosen].kept,
                 "of": t.singular_values.len(),
                 "condition": t.condition(),
-                "corner_rule": "nearest the origin with log E and log ‖Σ̃‖_F each scaled to [0, 1]; points with a negative variance excluded",
+                "corner_rule": "least E (25): where E stops falling as singular values are added; points with a negative variance excluded",
                 "l_curve": t.curve.iter().map(|c| json!({
                     "s_tol": c.s_tol, "E": c.error, "norm": c.norm, "negative_variance": c.negative_variance,
                 })).collect::<Vec<_>>(),
@@ -597,7 +608,7 @@ pub fn run_sweep(args: &SweepArgs) -> Result<()> {
             "prior_term": p.terms.prior,
             "epsilon": p.epsilon,
             "mac_most_probable_to_measured": p.mac,
-            "newton": {"iterations": p.iterations, "converged": p.converged},
+            "newton": {"iterations": p.iterations, "converged": p.converged, "continuation": stages_json(&p.stages)},
             "alternating": p.alternating.as_ref().map(|a| json!({
                 "iterations": a.iterations, "converged": a.converged, "theta": a.theta, "J_p": a.total,
             })),

@@ -290,17 +290,35 @@ impl BayesProblem {
             .max(1) as f64
     }
 
-    /// Runs the chosen solver from `λ = λ̂`, `θ = theta0`.
+    /// Runs the chosen solver from `λ = λ̂`, `θ = theta0`: Newton with σ_c continuation
+    /// ([`Self::solve_newton_continued`]), or the paper's alternating substeps.
     pub fn solve(
-        &self,
+        &mut self,
         solver: BayesSolver,
         theta0: &[f64],
         max_iterations: usize,
     ) -> Result<BayesResult, BayesError> {
         match solver {
-            BayesSolver::Newton => self.solve_newton(theta0, max_iterations),
+            BayesSolver::Newton => self.solve_newton_continued(theta0, max_iterations),
             BayesSolver::Alternating => self.solve_alternating(theta0, max_iterations),
         }
+    }
+
+    /// The weight σ_c of the model-equation residual (14).
+    pub fn sigma_c(&self) -> f64 {
+        self.inv_s2.sqrt().recip()
+    }
+
+    /// Re-weights (14) for another σ_c, keeping the model, data and prior.
+    pub fn set_sigma_c(&mut self, sigma_c: f64) -> Result<(), BayesError> {
+        if !(sigma_c.is_finite() && sigma_c > 0.0) {
+            return Err(BayesError::Setting {
+                name: "σ_c",
+                value: sigma_c,
+            });
+        }
+        self.inv_s2 = 1.0 / (sigma_c * sigma_c);
+        Ok(())
     }
 
     /// Measured eigenvalues λ̂.
@@ -568,10 +586,30 @@ pub enum BayesSolver {
 pub struct BayesResult {
     pub state: BayesState,
     pub terms: ObjectiveTerms,
+    /// Iterations of every stage together.
     pub iterations: usize,
     pub converged: bool,
     pub solver: BayesSolver,
+    /// The σ_c continuation that led here (Newton), last stage at the target σ_c; one
+    /// stage when the cold start converged directly, empty for the alternating solver.
+    pub stages: Vec<ContinuationStage>,
 }
+
+/// One Newton solve of a σ_c continuation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ContinuationStage {
+    pub sigma_c: f64,
+    pub iterations: usize,
+    pub converged: bool,
+}
+
+/// Newton iterations allowed to one stage of the σ_c continuation before it counts as
+/// failed: a converging cold start needs 5–40 on the reference structures, a warm stage
+/// 4–20.
+pub const CONTINUATION_STAGE_ITERATIONS: usize = 50;
+/// Largest factor between the σ_c of two continuation stages (refined by square roots
+/// when a stage fails).
+pub const CONTINUATION_RATIO: f64 = 3.162_277_660_168_379_5;
 
 /// Stopping rule of the Newton solver: every component of the undamped step below this,
 /// relative to `max(|y_i|, 1e-12·max|y|)`.
@@ -591,8 +629,110 @@ impl BayesProblem {
         theta0: &[f64],
         max_iterations: usize,
     ) -> Result<BayesResult, BayesError> {
+        self.solve_newton_from(&self.lambda_hat(), theta0, max_iterations)
+    }
+
+    /// Newton made robust for small σ_c. A small σ_c makes `F(λ, θ)` a narrow curved
+    /// valley (the model equation is nearly a constraint), and a cold start from `λ̂`, `θ0`
+    /// can stall far from it. So: a cold start at the target σ_c; if it does not converge
+    /// within [`CONTINUATION_STAGE_ITERATIONS`], cold starts at `10σ_c, 100σ_c, …` until
+    /// one converges, then warm-started stages back down to the target, each σ_c at most
+    /// [`CONTINUATION_RATIO`] below the last (the ratio refined by square roots when a
+    /// stage fails). `max_iterations` bounds the iterations of all stages together.
+    pub fn solve_newton_continued(
+        &mut self,
+        theta0: &[f64],
+        max_iterations: usize,
+    ) -> Result<BayesResult, BayesError> {
+        let target = self.sigma_c();
+        let budget = CONTINUATION_STAGE_ITERATIONS.min(max_iterations);
+        let mut stages = Vec::new();
+        let mut used = 0;
+        let finish =
+            |prob: &mut Self, mut r: BayesResult, stages: Vec<ContinuationStage>, used: usize| {
+                prob.inv_s2 = 1.0 / (target * target);
+                r.iterations = used;
+                r.stages = stages;
+                r
+            };
+        let record = |stages: &mut Vec<ContinuationStage>, s: f64, r: &BayesResult| {
+            stages.push(ContinuationStage {
+                sigma_c: s,
+                iterations: r.iterations,
+                converged: r.converged,
+            })
+        };
+        let direct = self.solve_newton(theta0, budget)?;
+        used += direct.iterations;
+        record(&mut stages, target, &direct);
+        if direct.converged || budget == max_iterations {
+            // Converged, or the caller allowed no more than one stage.
+            return Ok(finish(self, direct, stages, used));
+        }
+        // Climb until a cold start converges.
+        let mut sigma = target;
+        let mut good: Option<BayesResult> = None;
+        for _ in 0..12 {
+            sigma *= 10.0;
+            if used >= max_iterations {
+                break;
+            }
+            self.inv_s2 = 1.0 / (sigma * sigma);
+            let r = self.solve_newton(theta0, budget.min(max_iterations - used))?;
+            used += r.iterations;
+            record(&mut stages, sigma, &r);
+            if r.converged {
+                good = Some(r);
+                break;
+            }
+        }
+        let Some(mut good) = good else {
+            return Ok(finish(self, direct, stages, used));
+        };
+        // Descend with warm starts.
+        let mut ratio = CONTINUATION_RATIO;
+        while sigma > target && used < max_iterations {
+            let next = (sigma / ratio).max(target);
+            self.inv_s2 = 1.0 / (next * next);
+            let r = self.solve_newton_from(
+                &good.state.lambda,
+                &good.state.theta,
+                budget.min(max_iterations - used),
+            )?;
+            used += r.iterations;
+            record(&mut stages, next, &r);
+            if r.converged {
+                sigma = next;
+                good = r;
+                ratio = CONTINUATION_RATIO;
+            } else {
+                ratio = ratio.sqrt();
+                if ratio < 1.001 {
+                    good = r;
+                    break;
+                }
+            }
+        }
+        if sigma > target {
+            // Budget spent (or no progress) above the target: report the last stage at
+            // the target σ_c, not converged.
+            self.inv_s2 = 1.0 / (target * target);
+            let mut r = self.solve_newton_from(&good.state.lambda, &good.state.theta, 0)?;
+            r.converged = false;
+            return Ok(finish(self, r, stages, used));
+        }
+        Ok(finish(self, good, stages, used))
+    }
+
+    /// [`Self::solve_newton`] from any `(λ0, θ0)`, e.g. the MAP at a neighbouring σ_c.
+    pub fn solve_newton_from(
+        &self,
+        lambda0: &[f64],
+        theta0: &[f64],
+        max_iterations: usize,
+    ) -> Result<BayesResult, BayesError> {
         let nm = self.modes.len();
-        let mut y: Vec<f64> = self.lambda_hat();
+        let mut y: Vec<f64> = lambda0.to_vec();
         y.extend_from_slice(theta0);
         let mut cur = self.reduced(&y[..nm], &y[nm..])?;
         let mut mu = 1e-6;
@@ -649,8 +789,9 @@ impl BayesProblem {
             }
             iterations += 1;
             if !accepted {
-                // No descent possible at machine precision: at the minimum.
-                converged = true;
+                // No descent possible at machine precision: at the minimum if the Hessian
+                // is positive definite there, otherwise stuck (a saddle or a boundary).
+                converged = cur.hessian.llt(Side::Lower).is_ok();
                 break;
             }
         }
@@ -665,6 +806,7 @@ impl BayesProblem {
             iterations,
             converged,
             solver: BayesSolver::Newton,
+            stages: Vec::new(),
         })
     }
 
@@ -737,6 +879,7 @@ impl BayesProblem {
             iterations,
             converged,
             solver: BayesSolver::Alternating,
+            stages: Vec::new(),
         })
     }
 }

@@ -92,27 +92,19 @@ impl Tsvd {
     }
 }
 
-/// The L-curve corner: the point nearest the origin once `log E` and `log ‖Σ̃‖_F` are each
-/// scaled to `[0, 1]` over the curve (both small is the ideal; the corner is where one can
-/// no longer be reduced without the other growing fast). Points with a negative variance
-/// are not eligible. Returns an index into `curve`.
+/// The L-curve corner. Keeping more singular values lowers `E` (25) (the truncated inverse
+/// gets closer to an inverse) while `‖Σ̃‖_F` grows; in floating point, once the kept
+/// values reach the level where `H v_i` is swamped by rounding (`‖H‖·ε_mach`), `E` stops
+/// falling and shoots up with the norm. The corner is that turn: the point of **least
+/// `E`**, among points with no negative variance (the paper's red dots). With a
+/// well-conditioned `H` it is the full inverse. Returns an index into `curve`.
+///
+/// (The paper picks the corner by eye on a lin–lin plot, its log–log curve having no
+/// visible corner; the least-`E` point is an operational version of the same turn.)
 pub fn l_curve_corner(curve: &[LCurvePoint]) -> usize {
-    let tiny = f64::MIN_POSITIVE;
-    let le: Vec<f64> = curve.iter().map(|p| p.error.max(tiny).log10()).collect();
-    let ln: Vec<f64> = curve.iter().map(|p| p.norm.max(tiny).log10()).collect();
-    let range = |v: &[f64]| {
-        let lo = v.iter().copied().fold(f64::INFINITY, f64::min);
-        let hi = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-        (lo, (hi - lo).max(f64::EPSILON))
-    };
-    let (e0, es) = range(&le);
-    let (n0, ns) = range(&ln);
     (0..curve.len())
-        .filter(|&i| !curve[i].negative_variance)
-        .min_by(|&a, &b| {
-            let d = |i: usize| ((le[i] - e0) / es).hypot((ln[i] - n0) / ns);
-            d(a).total_cmp(&d(b))
-        })
+        .filter(|&i| !curve[i].negative_variance && curve[i].error.is_finite())
+        .min_by(|&a, &b| curve[a].error.total_cmp(&curve[b].error))
         .unwrap_or(0)
 }
 

@@ -12,7 +12,9 @@
 //! and the bottom is taken; if it is still above ν at the top, the top is taken and the
 //! rule is reported as not met.
 
-use super::{BayesError, BayesProblem, BayesSettings, BayesSolver, ObjectiveTerms};
+use super::{
+    BayesError, BayesProblem, BayesSettings, BayesSolver, ContinuationStage, ObjectiveTerms,
+};
 use crate::core::modal::ModalError;
 use crate::core::model::Model;
 use crate::core::updating::{Evaluator, MeasuredData};
@@ -33,7 +35,8 @@ pub enum SweepError {
 pub struct SweepSettings {
     pub prior_mean: Vec<f64>,
     pub prior_std: Vec<f64>,
-    /// Every solve starts here (cold start, so iteration counts compare across σ_c).
+    /// Every solve starts here (cold start, so iteration counts compare across σ_c; the
+    /// Newton solver continues in σ_c from above when its cold start stalls).
     pub theta0: Vec<f64>,
     pub newton_max_iterations: usize,
     /// Also run the paper's alternating solver, to this many iterations.
@@ -59,8 +62,11 @@ pub struct SweepPoint {
     pub epsilon: f64,
     /// MAC of each most probable shape to the measured one.
     pub mac: Vec<f64>,
+    /// Newton iterations, all continuation stages together.
     pub iterations: usize,
     pub converged: bool,
+    /// The σ_c continuation of the Newton solve (one stage when the cold start converged).
+    pub stages: Vec<ContinuationStage>,
     pub alternating: Option<AlternatingRun>,
 }
 
@@ -83,7 +89,7 @@ fn point(
     settings: &SweepSettings,
     evaluator: &mut Evaluator,
 ) -> Result<SweepPoint, SweepError> {
-    let prob = BayesProblem::new(
+    let mut prob = BayesProblem::new(
         model,
         data,
         &BayesSettings {
@@ -119,6 +125,7 @@ fn point(
         epsilon,
         iterations: res.iterations,
         converged: res.converged,
+        stages: res.stages,
         alternating,
     })
 }
