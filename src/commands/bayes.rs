@@ -9,7 +9,7 @@ use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::{Value, json};
 
-use super::update::{Inputs, UpdateArgs, load_inputs, load_set, measured_data};
+use super::update::{Inputs, UpdateArgs, load_inputs, measured_data};
 use super::{load_model, parse_theta, write_json};
 use crate::core::model::Model;
 use crate::core::updating::bayesian::{
@@ -52,7 +52,7 @@ pub struct BayesUpdateArgs {
     pub solver: SolverArg,
     /// σ_c of (14): a number, or `auto` for the discrepancy rule (see `sweep-sigma`).
     /// Default: the model file's `[bayesian] sigma_c`, else `auto`.
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     pub sigma_c: Option<String>,
     /// Range searched by `--sigma-c auto`, `from,to`.
     #[arg(long, default_value = "1,1e8")]
@@ -183,14 +183,32 @@ struct StageOne {
     theta0: Vec<f64>,
 }
 
-fn stage_one(args: &UpdateArgs, fine: &Model, max_iter: usize) -> Result<StageOne> {
+/// Stage I reads the same modal set as stage II: it was validated against the fine model
+/// (structure name, channels), and every channel must exist in the coarse model too.
+fn stage_one(
+    args: &UpdateArgs,
+    fine: &Model,
+    fine_set: &crate::contract::modal_set::ModalSet,
+    max_iter: usize,
+) -> Result<StageOne> {
     let b = &args.bayes;
     let path = b
         .stage1_model
         .as_ref()
         .expect("called with a stage-I model");
     let coarse = load_model(path)?;
-    let mut set = load_set(&coarse, &args.data)?;
+    if let Some(c) = fine_set
+        .channels
+        .iter()
+        .find(|c| coarse.channel_index(c).is_none())
+    {
+        bail!(
+            "--stage1-model {}: channel `{c}` of the modal set is not in model `{}`",
+            path.display(),
+            coarse.name
+        );
+    }
+    let mut set = fine_set.clone();
     if let Some(n) = b.stage1_modes {
         if n == 0 || n > set.modes.len() {
             bail!(
@@ -285,7 +303,7 @@ pub fn run_update(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
         SolverArg::Alternating => 1_000_000,
     });
     let stage1 = match &b.stage1_model {
-        Some(_) => Some(stage_one(args, model, max_iter)?),
+        Some(_) => Some(stage_one(args, model, set, max_iter)?),
         None => None,
     };
     let theta0 = stage1

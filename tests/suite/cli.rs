@@ -112,3 +112,201 @@ fn wrong_theta0_length_exits_2() {
         "{err}"
     );
 }
+
+/// Cantilever data (paper §2.7): `cantilever-truth` at θ = 0.5, 4 modes, 1 % CoV and NSD,
+/// with noise (seed 27), written by `simulate`.
+fn cantilever_data(name: &str) -> std::path::PathBuf {
+    let data = tmp(name);
+    let s = boltwatch(&[
+        "simulate",
+        "--model",
+        &model_path("cantilever-truth"),
+        "--theta",
+        "0.5",
+        "--modes",
+        "4",
+        "--freq-cov",
+        "0.01",
+        "--shape-nsd",
+        "0.01",
+        "--seed",
+        "27",
+        "-o",
+        data.to_str().unwrap(),
+    ]);
+    assert!(s.status.success(), "{}", String::from_utf8_lossy(&s.stderr));
+    data
+}
+
+fn read_json(path: &std::path::Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+/// `update --method bayesian` on cantilever case I at σ_c = 1e4, by both solvers: the
+/// result carries the Bayesian fields of the contract, both solvers reach the same θ (1e-6
+/// relative) and J_p (1e-9), Newton in under 100 iterations.
+#[test]
+fn bayesian_update_both_solvers_agree() {
+    let data = cantilever_data("cant-bayes.json");
+    let model = model_path("cantilever-case1");
+    let run = |solver: &str, out: &str, extra: &[&str]| {
+        let out = tmp(out);
+        let mut args = vec![
+            "--method",
+            "bayesian",
+            "--sigma-c",
+            "1e4",
+            "--solver",
+            solver,
+        ];
+        args.extend_from_slice(extra);
+        let u = update(&model, data.to_str().unwrap(), &out, &args);
+        assert!(u.status.success(), "{}", String::from_utf8_lossy(&u.stderr));
+        read_json(&out)
+    };
+    let newton = run("newton", "cant-newton.json", &[]);
+    let alt = run(
+        "alternating",
+        "cant-alt.json",
+        &["--max-iter", "20000", "--no-tsvd"],
+    );
+    for r in [&newton, &alt] {
+        assert_eq!(r["schema"], "boltwatch.update.v1");
+        assert_eq!(r["method"], "bayesian");
+        assert_eq!(r["converged"], true, "{}", r["solver"]);
+        let b = &r["bayesian"];
+        assert_eq!(b["sigma_c"], 1e4);
+        for key in ["J_p", "measurement_misfit", "modelling_error", "misfit_dof"] {
+            assert!(b[key].as_f64().unwrap().is_finite(), "{key}");
+        }
+        assert!(r["epsilon"].as_f64().unwrap() > 0.0);
+        let modes = r["modes"].as_array().unwrap();
+        assert_eq!(modes.len(), 4);
+        for m in modes {
+            assert!(m["mac_most_probable_to_measured"].as_f64().unwrap() > 0.9);
+            assert!(m["most_probable_lambda"].as_f64().unwrap() > 0.0);
+        }
+        assert!(r["parameters"][0]["sampling_std"].as_f64().unwrap() > 0.0);
+    }
+    assert!(newton["iterations"].as_u64().unwrap() < 100);
+    assert!(alt["iterations"].as_u64().unwrap() > newton["iterations"].as_u64().unwrap());
+    let t = |r: &serde_json::Value| r["parameters"][0]["theta"].as_f64().unwrap();
+    let j = |r: &serde_json::Value| r["bayesian"]["J_p"].as_f64().unwrap();
+    assert!((t(&newton) - t(&alt)).abs() <= 1e-6 * t(&newton));
+    assert!((j(&newton) - j(&alt)).abs() <= 1e-9 * j(&newton));
+    let tsvd = &newton["bayesian"]["tsvd"];
+    assert!(tsvd["s_tol"].as_f64().unwrap() > 0.0);
+    assert!(!tsvd["l_curve"].as_array().unwrap().is_empty());
+    assert!(alt["bayesian"]["tsvd"].is_null());
+}
+
+/// `sweep-sigma` writes the σ_c study as JSON (every point, both solvers' iterations, the
+/// automatic choice and its rule) and as an SVG figure.
+#[test]
+fn sweep_sigma_writes_json_and_svg() {
+    let data = cantilever_data("cant-sweep.json");
+    let dir = tmp("sweep");
+    let s = boltwatch(&[
+        "sweep-sigma",
+        "--model",
+        &model_path("cantilever-case1"),
+        "--data",
+        data.to_str().unwrap(),
+        "--from",
+        "1e2",
+        "--to",
+        "1e5",
+        "--points",
+        "4",
+        "--truth",
+        "0.5",
+        "--alternating-max-iter",
+        "20000",
+        "-o",
+        dir.to_str().unwrap(),
+    ]);
+    assert!(s.status.success(), "{}", String::from_utf8_lossy(&s.stderr));
+    let sweep = read_json(&dir.join("sweep.json"));
+    assert_eq!(sweep["schema"], "boltwatch.sigma_sweep.v1");
+    let points = sweep["points"].as_array().unwrap();
+    assert_eq!(points.len(), 4);
+    let mut last_misfit = f64::INFINITY;
+    for p in points {
+        assert_eq!(p["newton"]["converged"], true);
+        assert!(p["alternating"]["iterations"].as_u64().unwrap() > 0);
+        // The measurement misfit falls as σ_c grows (the MAP modes move to the data).
+        let m = p["measurement_misfit"].as_f64().unwrap();
+        assert!(
+            m < last_misfit,
+            "misfit not decreasing: {m} after {last_misfit}"
+        );
+        last_misfit = m;
+    }
+    assert!(sweep["auto"]["sigma_c"].as_f64().unwrap() > 0.0);
+    assert!(sweep["auto"]["rule"].as_str().unwrap().contains("ν"));
+    let svg = std::fs::read_to_string(dir.join("sweep.svg")).unwrap();
+    assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
+    assert!(svg.contains("σ_c") && svg.contains("polyline"));
+}
+
+/// The paper's two-stage use (§4.2): stage I on the simplified lab frame with 5 modes,
+/// stage II on the full parameterization starting from stage I's θ mapped onto it.
+#[test]
+fn two_stage_bayesian_update() {
+    let data = format!(
+        "{}/recordings/lab-frame-modal-set.json",
+        env!("CARGO_MANIFEST_DIR")
+    );
+    let out = tmp("two-stage.json");
+    let simplified = model_path("lab-frame-simplified");
+    let u = update(
+        &model_path("lab-frame"),
+        &data,
+        &out,
+        &[
+            "--method",
+            "bayesian",
+            "--sigma-c",
+            "1e4",
+            "--stage1-model",
+            &simplified,
+            "--stage1-modes",
+            "5",
+            "--no-tsvd",
+        ],
+    );
+    assert!(u.status.success(), "{}", String::from_utf8_lossy(&u.stderr));
+    let r = read_json(&out);
+    assert_eq!(r["converged"], true);
+    assert_eq!(r["start"], "stage I");
+    let s1 = &r["stage1"];
+    assert_eq!(s1["modes"], 5);
+    assert!(s1["parameters"].as_array().unwrap().len() < 17);
+    let mapping = s1["mapping"].as_array().unwrap();
+    assert_eq!(mapping.len(), 17);
+    assert!(mapping.iter().all(|m| m["theta0"].as_f64().unwrap() > 0.0));
+    assert_eq!(r["parameters"].as_array().unwrap().len(), 17);
+}
+
+/// Bad Bayesian options are refused with exit 2 and the flag named.
+#[test]
+fn bad_bayesian_options_exit_2() {
+    let data = format!(
+        "{}/recordings/lab-frame-modal-set.json",
+        env!("CARGO_MANIFEST_DIR")
+    );
+    let model = model_path("lab-frame");
+    for (extra, needle) in [
+        (vec!["--sigma-c", "-3"], "--sigma-c"),
+        (vec!["--sigma-c", "abc"], "--sigma-c"),
+        (vec!["--sigma-range", "5,1"], "--sigma-range"),
+        (vec!["--prior-std", "1,2"], "--prior-std"),
+    ] {
+        let mut args = vec!["--method", "bayesian"];
+        args.extend_from_slice(&extra);
+        let u = update(&model, &data, &tmp("bad-bayes.json"), &args);
+        let err = String::from_utf8_lossy(&u.stderr);
+        assert_eq!(u.status.code(), Some(2), "{extra:?}: {err}");
+        assert!(err.contains(needle), "{extra:?}: {err}");
+    }
+}

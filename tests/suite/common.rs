@@ -9,6 +9,8 @@ pub fn model_path(name: &str) -> String {
 
 /// Loads a shipped model.
 pub fn load_model(name: &str) -> Model {
+    // As the binary does: faer's threading only adds scheduler time on these sizes.
+    boltwatch::core::sequential_numerics();
     let text = std::fs::read_to_string(model_path(name)).expect("shipped model exists");
     Model::from_toml(&text).expect("shipped model assembles")
 }
