@@ -772,7 +772,7 @@ impl BayesProblem {
                 let trial_y: Vec<f64> = (0..ny).map(|i| y[i] + step[(i, 0)]).collect();
                 // θ > 0 and λ > 0 (K positive definite, modes of a stable structure): a
                 // step that leaves that region is rejected like one that does not descend.
-                if trial_y.iter().any(|v| !(*v > 0.0)) {
+                if !trial_y.iter().all(|v| *v > 0.0) {
                     mu = (mu * 10.0).max(1e-6);
                     continue;
                 }
