@@ -603,10 +603,24 @@ pub struct ContinuationStage {
     pub converged: bool,
 }
 
-/// Newton iterations allowed to one stage of the σ_c continuation before it counts as
-/// failed: a converging cold start needs 5–40 on the reference structures, a warm stage
-/// 4–20.
+/// Newton iterations allowed to a warm-started stage of the σ_c continuation before it
+/// counts as failed (a warm stage needs 4–25 on the reference structures).
 pub const CONTINUATION_STAGE_ITERATIONS: usize = 50;
+/// Newton iterations allowed to a cold start (from `λ̂`, `θ0`) before the continuation
+/// gives it up and climbs to a larger σ_c.
+pub const COLD_START_ITERATIONS: usize = 30;
+/// A cold start is given up early, after this many iterations, if the damping `μ` has not
+/// once fallen below [`STALL_DAMPING`]: its steps are still gradient-like, the sign of a
+/// start stuck on the wall of the narrow valley of a small σ_c. On the reference
+/// structures a cold start that converges has `μ ≤ 1e-3` within 3–5 iterations; one that
+/// stalls keeps `μ ≥ 0.1` for 20 or more.
+pub const STALL_PROBE_ITERATIONS: usize = 6;
+/// See [`STALL_PROBE_ITERATIONS`].
+pub const STALL_DAMPING: f64 = 1e-2;
+/// Stopping rule of the intermediate continuation stages (the next stage re-converges, so
+/// these need only bring the start into Newton's quadratic region): every component of the
+/// step below this relative, or the predicted decrease below 1e-9 of `F`.
+pub const STAGE_STEP_TOL: f64 = 1e-6;
 /// Largest factor between the σ_c of two continuation stages (refined by square roots
 /// when a stage fails).
 pub const CONTINUATION_RATIO: f64 = 3.162_277_660_168_379_5;
@@ -618,6 +632,37 @@ pub const NEWTON_STEP_TOL: f64 = 1e-11;
 pub const NEWTON_DECREMENT_TOL: f64 = 1e-14;
 /// Stopping rule of the alternating solver, as published: every `|Δθ_l| < 1e-9`.
 pub const ALTERNATING_TOL: f64 = 1e-9;
+
+/// When [`BayesProblem::newton`] stops.
+#[derive(Debug, Clone, Copy)]
+struct NewtonStop {
+    /// Every step component below this relative to `max(|y_i|, 1e-12·max|y|)`.
+    step_tol: f64,
+    /// Predicted decrease below this relative to `F`.
+    decrement_tol: f64,
+    /// Give up after [`STALL_PROBE_ITERATIONS`] if `μ` never fell below [`STALL_DAMPING`].
+    stall_probe: bool,
+}
+
+impl NewtonStop {
+    /// The solver's own stopping rule: converged to machine precision.
+    const FINAL: Self = Self {
+        step_tol: NEWTON_STEP_TOL,
+        decrement_tol: NEWTON_DECREMENT_TOL,
+        stall_probe: false,
+    };
+    /// A cold start of the continuation.
+    const COLD: Self = Self {
+        stall_probe: true,
+        ..Self::FINAL
+    };
+    /// An intermediate warm stage of the continuation.
+    const STAGE: Self = Self {
+        step_tol: STAGE_STEP_TOL,
+        decrement_tol: 1e-9,
+        stall_probe: false,
+    };
+}
 
 impl BayesProblem {
     /// Damped Newton (Levenberg–Marquardt on the exact Hessian) on `F(λ, θ)` from
@@ -635,10 +680,12 @@ impl BayesProblem {
     /// Newton made robust for small σ_c. A small σ_c makes `F(λ, θ)` a narrow curved
     /// valley (the model equation is nearly a constraint), and a cold start from `λ̂`, `θ0`
     /// can stall far from it. So: a cold start at the target σ_c; if it does not converge
-    /// within [`CONTINUATION_STAGE_ITERATIONS`], cold starts at `10σ_c, 100σ_c, …` until
-    /// one converges, then warm-started stages back down to the target, each σ_c at most
-    /// [`CONTINUATION_RATIO`] below the last (the ratio refined by square roots when a
-    /// stage fails). `max_iterations` bounds the iterations of all stages together.
+    /// within [`COLD_START_ITERATIONS`], or stalls (see [`STALL_PROBE_ITERATIONS`]), cold
+    /// starts at `10σ_c, 100σ_c, …` until one converges, then warm-started stages back down
+    /// to the target, each σ_c at most [`CONTINUATION_RATIO`] below the last (the ratio
+    /// refined by square roots when a stage fails). Stages above the target stop at the
+    /// looser [`STAGE_STEP_TOL`]; the last converges to the solver's full precision.
+    /// `max_iterations` bounds the iterations of all stages together.
     pub fn solve_newton_continued(
         &mut self,
         theta0: &[f64],
@@ -646,6 +693,7 @@ impl BayesProblem {
     ) -> Result<BayesResult, BayesError> {
         let target = self.sigma_c();
         let budget = CONTINUATION_STAGE_ITERATIONS.min(max_iterations);
+        let cold_budget = COLD_START_ITERATIONS.min(max_iterations);
         let mut stages = Vec::new();
         let mut used = 0;
         let finish =
@@ -662,10 +710,11 @@ impl BayesProblem {
                 converged: r.converged,
             })
         };
-        let direct = self.solve_newton(theta0, budget)?;
+        let lambda_hat = self.lambda_hat();
+        let direct = self.newton(&lambda_hat, theta0, cold_budget, NewtonStop::COLD)?;
         used += direct.iterations;
         record(&mut stages, target, &direct);
-        if direct.converged || budget == max_iterations {
+        if direct.converged || cold_budget == max_iterations {
             // Converged, or the caller allowed no more than one stage.
             return Ok(finish(self, direct, stages, used));
         }
@@ -678,7 +727,17 @@ impl BayesProblem {
                 break;
             }
             self.inv_s2 = 1.0 / (sigma * sigma);
-            let r = self.solve_newton(theta0, budget.min(max_iterations - used))?;
+            // Above the target: a stage, to the looser rule, but stall-probed.
+            let stop = NewtonStop {
+                stall_probe: true,
+                ..NewtonStop::STAGE
+            };
+            let r = self.newton(
+                &lambda_hat,
+                theta0,
+                cold_budget.min(max_iterations - used),
+                stop,
+            )?;
             used += r.iterations;
             record(&mut stages, sigma, &r);
             if r.converged {
@@ -689,15 +748,21 @@ impl BayesProblem {
         let Some(mut good) = good else {
             return Ok(finish(self, direct, stages, used));
         };
-        // Descend with warm starts.
+        // Descend with warm starts; only the last stage, at the target, converges fully.
         let mut ratio = CONTINUATION_RATIO;
         while sigma > target && used < max_iterations {
             let next = (sigma / ratio).max(target);
             self.inv_s2 = 1.0 / (next * next);
-            let r = self.solve_newton_from(
+            let stop = if next > target {
+                NewtonStop::STAGE
+            } else {
+                NewtonStop::FINAL
+            };
+            let r = self.newton(
                 &good.state.lambda,
                 &good.state.theta,
                 budget.min(max_iterations - used),
+                stop,
             )?;
             used += r.iterations;
             record(&mut stages, next, &r);
@@ -731,26 +796,43 @@ impl BayesProblem {
         theta0: &[f64],
         max_iterations: usize,
     ) -> Result<BayesResult, BayesError> {
+        self.newton(lambda0, theta0, max_iterations, NewtonStop::FINAL)
+    }
+
+    /// The damped Newton iteration behind [`Self::solve_newton_from`], with its stopping
+    /// rule as a parameter.
+    fn newton(
+        &self,
+        lambda0: &[f64],
+        theta0: &[f64],
+        max_iterations: usize,
+        stop: NewtonStop,
+    ) -> Result<BayesResult, BayesError> {
         let nm = self.modes.len();
         let mut y: Vec<f64> = lambda0.to_vec();
         y.extend_from_slice(theta0);
         let mut cur = self.reduced(&y[..nm], &y[nm..])?;
         let mut mu = 1e-6;
+        let mut least_mu = f64::INFINITY;
         let mut iterations = 0;
         let mut converged = false;
         while iterations < max_iterations {
+            if stop.stall_probe && iterations >= STALL_PROBE_ITERATIONS && least_mu >= STALL_DAMPING
+            {
+                break;
+            }
             let ny = y.len();
             let scale_y = y.iter().fold(0.0_f64, |a, v| a.max(v.abs()));
             // Undamped Newton step for the stopping test: converged when every component is
-            // below NEWTON_STEP_TOL relative, or the predicted decrease −gᵀΔ/2 is below
-            // NEWTON_DECREMENT_TOL of F (F cannot be lowered measurably any more).
+            // below `step_tol` relative, or the predicted decrease −gᵀΔ/2 is below
+            // `decrement_tol` of F (F cannot be lowered measurably any more).
             if let Ok(llt) = cur.hessian.llt(Side::Lower) {
                 let g = Col::from_fn(ny, |i| -cur.gradient[i]);
                 let step = llt.solve(g.as_mat());
                 let decrement: f64 = 0.5 * (0..ny).map(|i| g[i] * step[(i, 0)]).sum::<f64>();
                 if (0..ny).all(|i| {
-                    step[(i, 0)].abs() <= NEWTON_STEP_TOL * y[i].abs().max(1e-12 * scale_y)
-                }) || decrement <= NEWTON_DECREMENT_TOL * cur.value.abs()
+                    step[(i, 0)].abs() <= stop.step_tol * y[i].abs().max(1e-12 * scale_y)
+                }) || decrement <= stop.decrement_tol * cur.value.abs()
                 {
                     converged = true;
                     break;
@@ -780,6 +862,7 @@ impl BayesProblem {
                     Ok(trial) if trial.value < cur.value => {
                         y = trial_y;
                         cur = trial;
+                        least_mu = least_mu.min(mu);
                         mu = (mu / 10.0).max(1e-12);
                         accepted = true;
                         break;
