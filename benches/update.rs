@@ -1,4 +1,5 @@
-//! Timing of a full mode-matching update of the lab frame, and of one residual + Jacobian.
+//! Timing of a full mode-matching update of the lab frame, of one residual + Jacobian, and
+//! of a full Bayesian MAP solve (setup and Newton with σ_c continuation, paper (14)).
 //!
 //! Data: noise-drawn modal data simulated once (outside the timed loop) at a fixed truth,
 //! 9 modes, all 42 channels, frequency CoV 0.01, shape NSD 0.05, seed 42. The solver is
@@ -8,6 +9,7 @@ use std::hint::black_box;
 
 use boltwatch::core::model::Model;
 use boltwatch::core::simulate::{Noise, simulated_measured_data};
+use boltwatch::core::updating::bayesian::{BayesProblem, BayesSettings, BayesSolver};
 use boltwatch::core::updating::{Evaluator, MeasuredData, ModeMatching, ModeMatchingOptions};
 use criterion::{Criterion, criterion_group, criterion_main};
 
@@ -75,5 +77,42 @@ fn bench_update(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, bench_update);
+/// One full MAP solve from θ0 = 1: setting up (14), then Newton (with σ_c continuation
+/// where a cold start stalls). σ_c = 1e4 converges from a cold start; σ_c = 1e2 needs the
+/// continuation (a stalled cold start, a cold start at 1e3, two warm stages).
+fn bench_bayesian(c: &mut Criterion) {
+    boltwatch::core::sequential_numerics();
+    let model = lab_frame();
+    let data = noisy_data(&model);
+    let theta0 = [1.0; 17];
+    let mut group = c.benchmark_group("lab_frame_bayesian_map");
+    group.sample_size(10);
+    for sigma_c in [1e4, 1e2] {
+        let settings = BayesSettings {
+            sigma_c,
+            prior_mean: vec![1.0; 17],
+            prior_std: vec![1000.0; 17],
+        };
+        let solve = || {
+            let mut prob = BayesProblem::new(&model, &data, &settings).unwrap();
+            prob.solve(BayesSolver::Newton, &theta0, 200).unwrap()
+        };
+        let res = solve();
+        assert!(
+            res.converged,
+            "benchmark MAP at σ_c = {sigma_c:e} did not converge"
+        );
+        println!(
+            "σ_c = {sigma_c:e}: {} Newton iterations over {} stages",
+            res.iterations,
+            res.stages.len()
+        );
+        group.bench_function(format!("sigma_c_{sigma_c:e}"), |b| {
+            b.iter(|| black_box(solve()))
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(benches, bench_update, bench_bayesian);
 criterion_main!(benches);

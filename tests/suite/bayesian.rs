@@ -286,3 +286,41 @@ fn sampling_std_matches_monte_carlo_lab_frame() {
     }
     println!("largest |ratio − 1| = {worst:.3}");
 }
+
+/// Stage I → stage II (paper §4.2): every fine parameter takes the value of the simplified
+/// parameter that scales all it scales; the reverse mapping covers nothing and falls back
+/// to the nominal values.
+#[test]
+fn refine_theta_maps_simplified_onto_fine_lab_frame() {
+    let fine = load_model("lab-frame");
+    let coarse = load_model("lab-frame-simplified");
+    let coarse_theta = [0.9, 1.7, 1.05];
+    let refined = fine.refine_theta(&coarse, &coarse_theta).unwrap();
+    assert_eq!(refined.len(), 17);
+    for (l, (value, from)) in refined.iter().enumerate() {
+        let name = &fine.parameters()[l].name;
+        let expected = if name == "E" {
+            2
+        } else if name.starts_with('C') {
+            0
+        } else {
+            1
+        };
+        assert_eq!(*from, Some(expected), "{name}");
+        assert_eq!(*value, coarse_theta[expected], "{name}");
+    }
+    // A single fine connection does not cover the ten column connections.
+    let back = coarse.refine_theta(&fine, &[2.0; 17]).unwrap();
+    for (l, (value, from)) in back.iter().enumerate() {
+        let name = &coarse.parameters()[l].name;
+        if name == "E" {
+            assert_eq!((*value, *from), (2.0, Some(16)), "{name}");
+        } else {
+            assert_eq!(
+                (*value, *from),
+                (coarse.parameters()[l].nominal, None),
+                "{name}"
+            );
+        }
+    }
+}

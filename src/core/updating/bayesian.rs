@@ -830,9 +830,9 @@ impl BayesProblem {
                 let g = Col::from_fn(ny, |i| -cur.gradient[i]);
                 let step = llt.solve(g.as_mat());
                 let decrement: f64 = 0.5 * (0..ny).map(|i| g[i] * step[(i, 0)]).sum::<f64>();
-                if (0..ny).all(|i| {
-                    step[(i, 0)].abs() <= stop.step_tol * y[i].abs().max(1e-12 * scale_y)
-                }) || decrement <= stop.decrement_tol * cur.value.abs()
+                if (0..ny)
+                    .all(|i| step[(i, 0)].abs() <= stop.step_tol * y[i].abs().max(1e-12 * scale_y))
+                    || decrement <= stop.decrement_tol * cur.value.abs()
                 {
                     converged = true;
                     break;
