@@ -385,7 +385,7 @@ pub fn run_update(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
         "structure": set.structure,
         "time": set.time.to_rfc3339_opts(chrono::SecondsFormat::AutoSi, true),
         "converged": res.converged,
-        "termination": if res.converged { "converged" } else { "max_iterations" },
+        "termination": termination(&res),
         "iterations": res.iterations,
         "seconds": seconds,
         "solver": format!("{:?}", res.solver).to_lowercase(),
@@ -446,10 +446,10 @@ pub fn run_update(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
         "σ_c = {sigma_c:.4e}{}; {:?} solver: {} after {} iterations in {seconds:.2} s",
         if auto.is_some() { " (automatic)" } else { "" },
         res.solver,
-        if res.converged {
-            "converged"
-        } else {
-            "NOT converged"
+        match termination(&res) {
+            "converged" => "converged",
+            "boundary" => "NOT converged (stopped against θ > 0 or λ > 0: no interior minimum)",
+            _ => "NOT converged",
         },
         res.iterations
     );
@@ -806,4 +806,17 @@ fn sweep_panels(
         panels.push(err);
     }
     panels
+}
+
+/// The `termination` of `boltwatch.update.v1` for a MAP solve: `converged`, `boundary` (no
+/// step lowers J_p and the Hessian is not positive definite there: the minimum lies outside
+/// θ > 0, λ > 0, or at a saddle) or `max_iterations`.
+fn termination(res: &BayesResult) -> &'static str {
+    if res.converged {
+        "converged"
+    } else if res.stuck {
+        "boundary"
+    } else {
+        "max_iterations"
+    }
 }

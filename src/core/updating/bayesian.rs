@@ -589,6 +589,11 @@ pub struct BayesResult {
     /// Iterations of every stage together.
     pub iterations: usize,
     pub converged: bool,
+    /// Newton stopped because no step lowers `F` although the Hessian there is not
+    /// positive definite: a saddle, or (the usual case) a minimum outside the admissible
+    /// region `θ > 0, λ > 0`, against whose boundary the iteration came to rest. Data far
+    /// noisier than σ_c allows can put the unconstrained MAP there.
+    pub stuck: bool,
     pub solver: BayesSolver,
     /// The σ_c continuation that led here (Newton), last stage at the target σ_c; one
     /// stage when the cold start converged directly, empty for the alternating solver.
@@ -621,8 +626,11 @@ pub const STALL_DAMPING: f64 = 1e-2;
 /// these need only bring the start into Newton's quadratic region): every component of the
 /// step below this relative, or the predicted decrease below 1e-9 of `F`.
 pub const STAGE_STEP_TOL: f64 = 1e-6;
-/// Largest factor between the σ_c of two continuation stages (refined by square roots
-/// when a stage fails).
+/// Cold starts the continuation tries above the target σ_c (at `10σ_c, 100σ_c, …`) before
+/// it concludes that a larger σ_c does not help. On the reference structures the first
+/// converging cold start is at most 1000σ_c.
+pub const CONTINUATION_CLIMBS: usize = 6;
+/// Factor between the σ_c of two warm-started continuation stages.
 pub const CONTINUATION_RATIO: f64 = 3.162_277_660_168_379_5;
 
 /// Stopping rule of the Newton solver: every component of the undamped step below this,
@@ -681,9 +689,10 @@ impl BayesProblem {
     /// valley (the model equation is nearly a constraint), and a cold start from `λ̂`, `θ0`
     /// can stall far from it. So: a cold start at the target σ_c; if it does not converge
     /// within [`COLD_START_ITERATIONS`], or stalls (see [`STALL_PROBE_ITERATIONS`]), cold
-    /// starts at `10σ_c, 100σ_c, …` until one converges, then warm-started stages back down
-    /// to the target, each σ_c at most [`CONTINUATION_RATIO`] below the last (the ratio
-    /// refined by square roots when a stage fails). Stages above the target stop at the
+    /// starts at `10σ_c, 100σ_c, …` until one converges (at most [`CONTINUATION_CLIMBS`];
+    /// if none does, the first cold start carries on), then warm-started stages back down
+    /// to the target, each σ_c [`CONTINUATION_RATIO`] below the last (if one fails, the
+    /// first cold start carries on). Stages above the target stop at the
     /// looser [`STAGE_STEP_TOL`]; the last converges to the solver's full precision.
     /// `max_iterations` bounds the iterations of all stages together.
     pub fn solve_newton_continued(
@@ -721,7 +730,7 @@ impl BayesProblem {
         // Climb until a cold start converges.
         let mut sigma = target;
         let mut good: Option<BayesResult> = None;
-        for _ in 0..12 {
+        for _ in 0..CONTINUATION_CLIMBS {
             sigma *= 10.0;
             if used >= max_iterations {
                 break;
@@ -745,13 +754,36 @@ impl BayesProblem {
                 break;
             }
         }
+        // If no cold start converged up to 10^CONTINUATION_CLIMBS σ_c, or a warm stage
+        // fails on the way down, the trouble is not the narrow valley of a small σ_c
+        // (typically θ runs against the boundary θ > 0): carry on at the target from where
+        // the first cold start stopped, with the budget left.
+        let carry_on = |prob: &mut Self, mut stages: Vec<ContinuationStage>, mut used: usize| {
+            prob.inv_s2 = 1.0 / (target * target);
+            let more = prob.newton(
+                &direct.state.lambda,
+                &direct.state.theta,
+                max_iterations.saturating_sub(used),
+                NewtonStop::FINAL,
+            )?;
+            used += more.iterations;
+            record(&mut stages, target, &more);
+            Ok(finish(prob, more, stages, used))
+        };
         let Some(mut good) = good else {
-            return Ok(finish(self, direct, stages, used));
+            return carry_on(self, stages, used);
         };
         // Descend with warm starts; only the last stage, at the target, converges fully.
-        let mut ratio = CONTINUATION_RATIO;
-        while sigma > target && used < max_iterations {
-            let next = (sigma / ratio).max(target);
+        while sigma > target {
+            if used >= max_iterations {
+                // Budget spent above the target: report the last stage at the target σ_c,
+                // not converged.
+                self.inv_s2 = 1.0 / (target * target);
+                let mut r = self.solve_newton_from(&good.state.lambda, &good.state.theta, 0)?;
+                r.converged = false;
+                return Ok(finish(self, r, stages, used));
+            }
+            let next = (sigma / CONTINUATION_RATIO).max(target);
             self.inv_s2 = 1.0 / (next * next);
             let stop = if next > target {
                 NewtonStop::STAGE
@@ -766,25 +798,11 @@ impl BayesProblem {
             )?;
             used += r.iterations;
             record(&mut stages, next, &r);
-            if r.converged {
-                sigma = next;
-                good = r;
-                ratio = CONTINUATION_RATIO;
-            } else {
-                ratio = ratio.sqrt();
-                if ratio < 1.001 {
-                    good = r;
-                    break;
-                }
+            if !r.converged {
+                return carry_on(self, stages, used);
             }
-        }
-        if sigma > target {
-            // Budget spent (or no progress) above the target: report the last stage at
-            // the target σ_c, not converged.
-            self.inv_s2 = 1.0 / (target * target);
-            let mut r = self.solve_newton_from(&good.state.lambda, &good.state.theta, 0)?;
-            r.converged = false;
-            return Ok(finish(self, r, stages, used));
+            sigma = next;
+            good = r;
         }
         Ok(finish(self, good, stages, used))
     }
@@ -816,6 +834,7 @@ impl BayesProblem {
         let mut least_mu = f64::INFINITY;
         let mut iterations = 0;
         let mut converged = false;
+        let mut stuck = false;
         while iterations < max_iterations {
             if stop.stall_probe && iterations >= STALL_PROBE_ITERATIONS && least_mu >= STALL_DAMPING
             {
@@ -875,6 +894,7 @@ impl BayesProblem {
                 // No descent possible at machine precision: at the minimum if the Hessian
                 // is positive definite there, otherwise stuck (a saddle or a boundary).
                 converged = cur.hessian.llt(Side::Lower).is_ok();
+                stuck = !converged;
                 break;
             }
         }
@@ -888,6 +908,7 @@ impl BayesProblem {
             state,
             iterations,
             converged,
+            stuck,
             solver: BayesSolver::Newton,
             stages: Vec::new(),
         })
@@ -961,6 +982,7 @@ impl BayesProblem {
             state,
             iterations,
             converged,
+            stuck: false,
             solver: BayesSolver::Alternating,
             stages: Vec::new(),
         })
