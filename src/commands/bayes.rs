@@ -489,7 +489,7 @@ fn print_bayes_table(
     );
     for (l, p) in model.parameters().iter().enumerate() {
         println!(
-            "{:<12} {:>11.5} {:>11.5} {:>11.5} {:>11.5} {:>11}",
+            "{:<12} {:>11.5} {:>11.5} {:>11.5} {:>11.3e} {:>11}",
             p.name,
             res.state.theta[l],
             post[l],
