@@ -5,4 +5,5 @@
 pub mod commands;
 pub mod contract;
 pub mod core;
+pub mod pipeline;
 pub mod plot;

@@ -9,8 +9,8 @@ use super::{load_model, parse_theta, write_json};
 use crate::contract::modal_set::{ModalSet, ValidationContext, parse_modal_set};
 use crate::core::model::Model;
 use crate::core::updating::{
-    Evaluator, MeasuredData, ModeMatching, ModeMatchingOptions, RawMode, StartPath, StepControl,
-    Weighting, chi2_bound,
+    Evaluator, MeasuredData, ModeMatching, ModeMatchingOptions, StartPath, StepControl, Weighting,
+    chi2_bound,
 };
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -98,30 +98,7 @@ pub fn load_set(model: &Model, path: &std::path::Path) -> Result<ModalSet> {
     parse_modal_set(&bytes, &ctx).with_context(|| format!("modal set {} rejected", path.display()))
 }
 
-/// The modal set's numbers in the model's channel indexing.
-pub fn measured_data(set: &ModalSet, model: &Model, w_psi: f64) -> MeasuredData {
-    let idx: Vec<usize> = set
-        .channels
-        .iter()
-        .map(|c| model.channel_index(c).expect("validated: channel exists"))
-        .collect();
-    let raw: Vec<RawMode> = set
-        .modes
-        .iter()
-        .map(|m| RawMode {
-            frequency_hz: m.frequency_hz,
-            frequency_cov: m.frequency_cov,
-            shape: m.shape.as_ref().map(|s| {
-                s.iter()
-                    .zip(&idx)
-                    .filter_map(|(v, &c)| v.map(|v| (c, v)))
-                    .collect()
-            }),
-            shape_nsd: m.shape_nsd,
-        })
-        .collect();
-    MeasuredData::new(&raw, w_psi)
-}
+pub use crate::pipeline::measured_data;
 
 pub fn run(args: &UpdateArgs) -> Result<()> {
     let inputs = load_inputs(

@@ -1,0 +1,708 @@
+//! The tracker (DESIGN §1, §7) as a sans-I/O state machine: raw modal-set payloads in,
+//! [`Action`]s out (publish an estimate, an alert or a rejection; run a cross-check; write a
+//! checkpoint). No clocks, files or network: the live daemon and `replay` drive the same
+//! [`Tracker`], so a replay is deterministic.
+//!
+//! Per accepted set: a warm-started mode-matching update from the last θ (the model's
+//! eigen solver, Nelson buffers and factorization pattern reused), falling back to a
+//! globalized cold start from the baseline when the pairing collapses, the fit does not
+//! converge or ε jumps; a [`drift::DriftFilter`] per parameter; loosening alerts per
+//! connection parameter and a model-inadequacy alert on ε ([`alerts`]). A set that fails
+//! validation is published as rejected and leaves the state unchanged.
+
+pub mod alerts;
+pub mod drift;
+
+use chrono::{DateTime, SecondsFormat, Utc};
+use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
+
+use crate::contract::modal_set::{ModalSet, Rejection, ValidationContext, parse_modal_set};
+use crate::core::modal::ModalError;
+use crate::core::model::{Model, ParameterKind};
+use crate::core::updating::data::RawMode;
+use crate::core::updating::{
+    Evaluator, MeasuredData, ModeMatching, ModeMatchingOptions, ModeMatchingResult, UpdateError,
+    chi2_bound,
+};
+use alerts::{AlertThresholds, InadequacyState, Level, LooseningState};
+use drift::{DriftFilter, DriftNoise, Z95};
+
+/// Schema names of the outputs (DESIGN §3.3).
+pub const STIFFNESS_SCHEMA: &str = "boltwatch.stiffness.v1";
+pub const ALERT_SCHEMA: &str = "boltwatch.alert.v1";
+pub const CROSSCHECK_SCHEMA: &str = "boltwatch.crosscheck.v1";
+pub const REJECTED_SCHEMA: &str = "boltwatch.rejected.v1";
+/// Schema of the checkpoint file.
+pub const CHECKPOINT_SCHEMA: &str = "boltwatch.checkpoint.v1";
+
+/// Raw payload bytes kept in a rejection message.
+pub const REJECTED_PAYLOAD_LIMIT: usize = 4096;
+
+/// Configuration of one structure's tracker (`[tracker]` of the configuration).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrackerConfig {
+    pub alerts: AlertThresholds,
+    pub drift: DriftNoise,
+    /// Accepted sets whose filtered θ becomes the baseline (no loosening alerts before).
+    pub baseline_sets: u32,
+    /// A warm-started fit whose ε exceeds both its χ² bound and this multiple of the last
+    /// ε is redone from a cold start.
+    pub epsilon_jump: f64,
+    /// Cross-check every this many accepted sets (0: never) ...
+    pub crosscheck_every_sets: u64,
+    /// ... or when this much recording time has passed since the last one, s (0: never).
+    pub crosscheck_every_s: f64,
+    /// Checkpoint every this many accepted sets (and on shutdown).
+    pub checkpoint_every_sets: u64,
+    /// Accept a set with the same time as the last accepted one (replays).
+    pub allow_equal_time: bool,
+    /// Shape weight w_ψ of weighting (9), for sets without uncertainties.
+    pub shape_weight: f64,
+}
+
+impl Default for TrackerConfig {
+    fn default() -> Self {
+        Self {
+            alerts: AlertThresholds::default(),
+            drift: DriftNoise::default(),
+            baseline_sets: 20,
+            epsilon_jump: 4.0,
+            crosscheck_every_sets: 1000,
+            crosscheck_every_s: 86_400.0,
+            checkpoint_every_sets: 100,
+            allow_equal_time: false,
+            shape_weight: 1.0,
+        }
+    }
+}
+
+impl TrackerConfig {
+    /// Checks every value; the error names the key.
+    pub fn validate(&self) -> Result<(), TrackerError> {
+        let bad = |key: &str, reason: &str| {
+            Err(TrackerError::Config {
+                key: format!("tracker.{key}"),
+                reason: reason.into(),
+            })
+        };
+        if let Err((key, reason)) = self.alerts.validate() {
+            return bad(&format!("alerts.{key}"), &reason);
+        }
+        let nonneg = |v: f64| v.is_finite() && v >= 0.0;
+        if !nonneg(self.drift.level_per_day) {
+            return bad("drift.level_per_day", "must be a finite number ≥ 0");
+        }
+        if !nonneg(self.drift.trend_per_day) {
+            return bad("drift.trend_per_day", "must be a finite number ≥ 0");
+        }
+        if self.baseline_sets == 0 {
+            return bad("baseline_sets", "must be at least 1");
+        }
+        if !(self.epsilon_jump.is_finite() && self.epsilon_jump > 1.0) {
+            return bad("epsilon_jump", "must be a finite number > 1");
+        }
+        if !nonneg(self.crosscheck_every_s) {
+            return bad("crosscheck_every_s", "must be a finite number ≥ 0");
+        }
+        if self.checkpoint_every_sets == 0 {
+            return bad("checkpoint_every_sets", "must be at least 1");
+        }
+        if !(self.shape_weight.is_finite() && self.shape_weight > 0.0) {
+            return bad("shape_weight", "must be a finite number > 0");
+        }
+        Ok(())
+    }
+}
+
+/// Failures of the tracker itself (not of an input, which is rejected instead).
+#[derive(Debug, thiserror::Error)]
+pub enum TrackerError {
+    #[error("configuration key {key}: {reason}")]
+    Config { key: String, reason: String },
+    #[error("checkpoint: {0}")]
+    Checkpoint(String),
+    #[error(transparent)]
+    Update(#[from] UpdateError),
+    #[error(transparent)]
+    Modal(#[from] ModalError),
+}
+
+/// Something the driver must do.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Action {
+    /// Publish `payload` on `boltwatch/<structure>/<topic>` with this schema; `time` is the
+    /// time of the modal set it answers (log time of the output).
+    Publish {
+        topic: &'static str,
+        schema: &'static str,
+        time: DateTime<Utc>,
+        payload: Value,
+    },
+    /// Run the Bayesian cross-check on this set, off the tracking path, and publish its
+    /// result ([`crosscheck`]) on `crosscheck`.
+    Crosscheck(Box<CrosscheckRequest>),
+    /// Persist this state (atomically); [`Tracker::restore`] resumes from it.
+    Checkpoint(Value),
+}
+
+/// What a cross-check needs: the set and the tracked estimate it is compared with.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CrosscheckRequest {
+    pub set: ModalSet,
+    pub theta: Vec<f64>,
+    pub std: Vec<f64>,
+    pub iterations: usize,
+}
+
+/// The persistent state of a tracker (the checkpoint's contents).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrackerState {
+    pub structure: String,
+    /// Time of the last accepted set.
+    pub last_time: Option<DateTime<Utc>>,
+    /// Time origin of the drift filters (the first accepted set).
+    pub origin: Option<DateTime<Utc>>,
+    /// θ and its std after the last converged update (the warm start).
+    pub theta: Option<Vec<f64>>,
+    pub std: Option<Vec<f64>>,
+    /// ε of the last update.
+    pub epsilon: Option<f64>,
+    /// Baseline θ, once the commissioning sets are in.
+    pub baseline: Option<Vec<f64>>,
+    pub filters: Vec<DriftFilter>,
+    pub loosening: Vec<LooseningState>,
+    pub inadequacy: InadequacyState,
+    pub accepted: u64,
+    pub rejected: u64,
+    /// Accepted sets whose update did not converge (estimate published, filters not fed).
+    pub unconverged: u64,
+    pub cold_starts: u64,
+    pub last_crosscheck: Option<(u64, DateTime<Utc>)>,
+}
+
+/// One structure's tracker.
+pub struct Tracker {
+    model: Model,
+    cfg: TrackerConfig,
+    mm: ModeMatching,
+    state: TrackerState,
+    opts: ModeMatchingOptions,
+    /// Parameter `l` is a group of connections (eligible for loosening alerts).
+    is_connection: Vec<bool>,
+    /// Nominal rotational stiffness of parameter `l` (N·m/rad), when its connections share one.
+    k_nominal: Vec<Option<f64>>,
+}
+
+impl Tracker {
+    /// A fresh tracker for `model`.
+    pub fn new(model: Model, cfg: TrackerConfig) -> Result<Self, TrackerError> {
+        cfg.validate()?;
+        let nominal = model.nominal_theta();
+        let state = TrackerState {
+            structure: model.name.clone(),
+            last_time: None,
+            origin: None,
+            theta: None,
+            std: None,
+            epsilon: None,
+            baseline: None,
+            filters: nominal
+                .iter()
+                .map(|&v| DriftFilter::new(v, cfg.drift))
+                .collect(),
+            loosening: vec![LooseningState::default(); nominal.len()],
+            inadequacy: InadequacyState::default(),
+            accepted: 0,
+            rejected: 0,
+            unconverged: 0,
+            cold_starts: 0,
+            last_crosscheck: None,
+        };
+        Self::with_state(model, cfg, state)
+    }
+
+    /// A tracker resumed from a checkpoint written by [`Action::Checkpoint`].
+    pub fn restore(
+        model: Model,
+        cfg: TrackerConfig,
+        checkpoint: &Value,
+    ) -> Result<Self, TrackerError> {
+        cfg.validate()?;
+        let schema = checkpoint.get("schema").and_then(Value::as_str);
+        if schema != Some(CHECKPOINT_SCHEMA) {
+            return Err(TrackerError::Checkpoint(format!(
+                "schema is {schema:?}, expected {CHECKPOINT_SCHEMA}"
+            )));
+        }
+        let state: TrackerState = serde_json::from_value(checkpoint["state"].clone())
+            .map_err(|e| TrackerError::Checkpoint(e.to_string()))?;
+        if state.structure != model.name {
+            return Err(TrackerError::Checkpoint(format!(
+                "written for structure {}, not {}",
+                state.structure, model.name
+            )));
+        }
+        let p = model.n_params();
+        if state.filters.len() != p || state.loosening.len() != p {
+            return Err(TrackerError::Checkpoint(format!(
+                "has {} parameters, the model {p}",
+                state.filters.len()
+            )));
+        }
+        Self::with_state(model, cfg, state)
+    }
+
+    fn with_state(
+        model: Model,
+        cfg: TrackerConfig,
+        state: TrackerState,
+    ) -> Result<Self, TrackerError> {
+        let is_connection = model
+            .parameters()
+            .iter()
+            .map(|p| matches!(p.kind, ParameterKind::Connections(_)))
+            .collect();
+        let k_nominal = model
+            .parameters()
+            .iter()
+            .map(|p| match &p.kind {
+                ParameterKind::Connections(c) => {
+                    let k0 = model.connections()[*c.first()?].k;
+                    c.iter()
+                        .all(|&i| model.connections()[i].k == k0)
+                        .then_some(k0)
+                }
+                _ => None,
+            })
+            .collect();
+        let mm = ModeMatching::new(Evaluator::new(&model)?);
+        Ok(Self {
+            model,
+            cfg,
+            mm,
+            state,
+            opts: ModeMatchingOptions::default(),
+            is_connection,
+            k_nominal,
+        })
+    }
+
+    pub fn model(&self) -> &Model {
+        &self.model
+    }
+
+    pub fn config(&self) -> &TrackerConfig {
+        &self.cfg
+    }
+
+    pub fn state(&self) -> &TrackerState {
+        &self.state
+    }
+
+    /// The checkpoint of the current state.
+    pub fn checkpoint(&self) -> Value {
+        json!({
+            "schema": CHECKPOINT_SCHEMA,
+            "state": serde_json::to_value(&self.state).expect("state serializes"),
+        })
+    }
+
+    /// Handles one raw payload received at `received` (the driver's clock or the
+    /// recording's log time, used only in rejections).
+    pub fn handle(&mut self, received: DateTime<Utc>, payload: &[u8]) -> Vec<Action> {
+        let structures = [self.model.name.as_str()];
+        let channels: Vec<String> = self
+            .model
+            .channels()
+            .iter()
+            .map(|c| c.name.clone())
+            .collect();
+        let ctx = ValidationContext {
+            structures: &structures,
+            model_channels: &channels,
+            last_time: self.state.last_time,
+            allow_equal_time: self.cfg.allow_equal_time,
+        };
+        match parse_modal_set(payload, &ctx) {
+            Ok(set) => self.handle_set(set, received, payload),
+            Err(rej) => {
+                self.state.rejected += 1;
+                vec![self.rejection(received, &rej, payload)]
+            }
+        }
+    }
+
+    fn rejection(&self, received: DateTime<Utc>, rej: &Rejection, payload: &[u8]) -> Action {
+        let text = String::from_utf8_lossy(payload);
+        let mut cut = text.len().min(REJECTED_PAYLOAD_LIMIT);
+        while !text.is_char_boundary(cut) {
+            cut -= 1;
+        }
+        Action::Publish {
+            topic: "rejected",
+            schema: REJECTED_SCHEMA,
+            time: received,
+            payload: json!({
+                "schema": REJECTED_SCHEMA,
+                "structure": self.model.name,
+                "time": rfc3339(received),
+                "received": rfc3339(received),
+                "reason": rej.reason,
+                "field": rej.field,
+                "payload": &text[..cut],
+                "payload_bytes": payload.len(),
+                "truncated": cut < text.len(),
+            }),
+        }
+    }
+
+    fn handle_set(
+        &mut self,
+        set: ModalSet,
+        received: DateTime<Utc>,
+        payload: &[u8],
+    ) -> Vec<Action> {
+        let data = measured_data(&set, &self.model, self.cfg.shape_weight);
+        let (res, warm, fallback) = match self.fit(&data) {
+            Ok(x) => x,
+            Err(e) => {
+                // The model could not be evaluated for this set (e.g. more modes than the
+                // model resolves): a rejection, state unchanged.
+                self.state.rejected += 1;
+                let rej = Rejection {
+                    field: "modes".into(),
+                    reason: format!("update failed: {e}"),
+                };
+                return vec![self.rejection(received, &rej, payload)];
+            }
+        };
+        let mut actions = Vec::new();
+        let st = &mut self.state;
+        st.accepted += 1;
+        st.last_time = Some(set.time);
+        let origin = *st.origin.get_or_insert(set.time);
+        let days = (set.time - origin).num_milliseconds() as f64 / 86_400_000.0;
+        let converged = res.converged();
+        let std = res.std();
+        if !warm {
+            st.cold_starts += 1;
+        }
+        let bound = chi2_bound(data.n_data(), self.model.n_params());
+        if converged {
+            st.theta = Some(res.theta.clone());
+            st.std = Some(std.clone());
+            st.epsilon = Some(res.epsilon());
+            for (l, f) in st.filters.iter_mut().enumerate() {
+                f.observe(days, res.theta[l], std[l] * std[l]);
+            }
+            if st.baseline.is_none()
+                && st.accepted - st.unconverged >= u64::from(self.cfg.baseline_sets)
+            {
+                st.baseline = Some(st.filters.iter().map(|f| f.estimate().level).collect());
+            }
+        } else {
+            st.unconverged += 1;
+        }
+        // Estimate.
+        let baseline = st.baseline.clone();
+        let params: Vec<Value> = self
+            .model
+            .parameters()
+            .iter()
+            .enumerate()
+            .map(|(l, p)| {
+                let f = st.filters[l].estimate();
+                let b = baseline.as_ref().map(|b| b[l]);
+                json!({
+                    "name": p.name,
+                    "theta": res.theta[l],
+                    "std": finite(std[l]),
+                    "lower95": finite(res.theta[l] - Z95 * std[l]),
+                    "upper95": finite(res.theta[l] + Z95 * std[l]),
+                    "baseline": b,
+                    "change": b.map(|b| (res.theta[l] - b) / b),
+                    "stiffness": self.k_nominal[l].map(|k| k * res.theta[l]),
+                    "filtered": {
+                        "level": f.level, "trend_per_day": f.trend, "std": f.std,
+                        "lower95": f.lower95, "upper95": f.upper95,
+                        "change": b.map(|b| (f.level - b) / b),
+                    },
+                })
+            })
+            .collect();
+        let modes: Vec<Value> = set
+            .modes
+            .iter()
+            .enumerate()
+            .map(|(m, mode)| {
+                json!({
+                    "measured_hz": mode.frequency_hz,
+                    "model_hz": res.last.model_hz(m),
+                    "mac": finite(res.last.mac[m]),
+                    "paired_with": res.last.pairing[m] + 1,
+                })
+            })
+            .collect();
+        actions.push(Action::Publish {
+            topic: "stiffness",
+            schema: STIFFNESS_SCHEMA,
+            time: set.time,
+            payload: json!({
+                "schema": STIFFNESS_SCHEMA,
+                "structure": self.model.name,
+                "time": rfc3339(set.time),
+                "method": "mode-matching",
+                "converged": converged,
+                "termination": format!("{:?}", res.termination),
+                "iterations": res.iterations,
+                "warm_start": warm,
+                "cold_start_reason": fallback,
+                "epsilon": res.epsilon(),
+                "epsilon_bound": bound,
+                "temperature_c": set.temperature_c,
+                "parameters": params,
+                "modes": modes,
+            }),
+        });
+        // Alerts.
+        let st = &mut self.state;
+        if let Some(level) = st
+            .inadequacy
+            .step(res.epsilon(), bound, self.cfg.alerts.persistence)
+        {
+            actions.push(alert(
+                &self.model.name,
+                set.time,
+                json!({
+                    "connection": null,
+                    "kind": "model-inadequate",
+                    "level": level,
+                    "epsilon": res.epsilon(),
+                    "epsilon_bound": bound,
+                    "confidence": null,
+                    "message": if level == "cleared" {
+                        format!("ε = {:.1} back within its χ² bound {bound:.1}", res.epsilon())
+                    } else {
+                        format!(
+                            "ε = {:.1} above its χ² bound {bound:.1} on {} successive sets: the model \
+                             class misses an effect; loosening verdicts are unreliable until diagnosed",
+                            res.epsilon(),
+                            self.cfg.alerts.persistence
+                        )
+                    },
+                }),
+            ));
+        }
+        if converged && let Some(b) = &st.baseline {
+            for (l, &b_l) in b.iter().enumerate() {
+                if !self.is_connection[l] {
+                    continue;
+                }
+                let f = st.filters[l].estimate();
+                if let Some(tr) = st.loosening[l].step(&self.cfg.alerts, b_l, f.level, f.std) {
+                    let name = &self.model.parameters()[l].name;
+                    let drop = (b_l - f.level) / b_l;
+                    actions.push(alert(
+                        &self.model.name,
+                        set.time,
+                        json!({
+                            "connection": name,
+                            "kind": "loosening",
+                            "level": tr.level,
+                            "theta": f.level,
+                            "lower95": f.lower95,
+                            "upper95": f.upper95,
+                            "baseline": b_l,
+                            "drop": drop,
+                            "confidence": tr.confidence,
+                            "model_inadequate": st.inadequacy.raised,
+                            "message": loosening_message(name, tr.level, drop, tr.confidence, st.inadequacy.raised),
+                        }),
+                    ));
+                }
+            }
+        }
+        // Cross-check schedule (recording time, so replays are deterministic).
+        if converged {
+            let due_sets = self.cfg.crosscheck_every_sets > 0
+                && st
+                    .last_crosscheck
+                    .is_none_or(|(n, _)| st.accepted - n >= self.cfg.crosscheck_every_sets);
+            let due_time = self.cfg.crosscheck_every_s > 0.0
+                && st.last_crosscheck.is_some_and(|(_, t)| {
+                    (set.time - t).num_milliseconds() as f64 / 1000.0 >= self.cfg.crosscheck_every_s
+                });
+            if due_sets || due_time {
+                st.last_crosscheck = Some((st.accepted, set.time));
+                actions.push(Action::Crosscheck(Box::new(CrosscheckRequest {
+                    set,
+                    theta: res.theta.clone(),
+                    std,
+                    iterations: res.iterations,
+                })));
+            }
+        }
+        if st.accepted.is_multiple_of(self.cfg.checkpoint_every_sets) {
+            actions.push(Action::Checkpoint(self.checkpoint()));
+        }
+        actions
+    }
+
+    /// Warm start from the last θ; a cold, globalized start from the baseline (or the
+    /// nominal θ) on the first set or when the warm fit fails. Returns the fit, whether it
+    /// was warm, and why a cold start was needed.
+    fn fit(
+        &mut self,
+        data: &MeasuredData,
+    ) -> Result<(ModeMatchingResult, bool, Option<String>), UpdateError> {
+        let cold_theta = self
+            .state
+            .baseline
+            .clone()
+            .unwrap_or_else(|| self.model.nominal_theta());
+        let Some(theta) = self.state.theta.clone() else {
+            let (r, _) = self
+                .mm
+                .run_global(&self.model, data, &cold_theta, &self.opts)?;
+            return Ok((r, false, Some("first set".into())));
+        };
+        let warm = self.mm.run(&self.model, data, &theta, &self.opts)?;
+        let bound = chi2_bound(data.n_data(), self.model.n_params());
+        let mut pairs = warm.last.pairing.clone();
+        pairs.sort_unstable();
+        pairs.dedup();
+        let reason = if !warm.converged() {
+            Some(format!(
+                "warm start did not converge ({:?})",
+                warm.termination
+            ))
+        } else if pairs.len() < warm.last.pairing.len() {
+            Some("pairing collapsed (two measured modes on one model mode)".into())
+        } else if warm.epsilon() > bound
+            && self
+                .state
+                .epsilon
+                .is_some_and(|e| warm.epsilon() > self.cfg.epsilon_jump * e.max(1e-300))
+        {
+            Some(format!(
+                "ε jumped from {:.1} to {:.1}",
+                self.state.epsilon.unwrap_or(f64::NAN),
+                warm.epsilon()
+            ))
+        } else {
+            None
+        };
+        let Some(reason) = reason else {
+            return Ok((warm, true, None));
+        };
+        let (cold, _) = self
+            .mm
+            .run_global(&self.model, data, &cold_theta, &self.opts)?;
+        // Keep the better of the two (a converged fit with the lower ε).
+        let better = match (cold.converged(), warm.converged()) {
+            (true, false) => true,
+            (false, true) => false,
+            _ => cold.epsilon() <= warm.epsilon(),
+        };
+        Ok(if better {
+            (cold, false, Some(reason))
+        } else {
+            (
+                warm,
+                true,
+                Some(format!("{reason}; the cold start did no better")),
+            )
+        })
+    }
+}
+
+fn loosening_message(
+    name: &str,
+    level: &str,
+    drop: f64,
+    confidence: f64,
+    inadequate: bool,
+) -> String {
+    let base = match level {
+        "cleared" => format!(
+            "{name}: stiffness recovered ({:.0} % below baseline)",
+            100.0 * drop
+        ),
+        _ => format!(
+            "{name}: stiffness {:.0} % below baseline ({level}, confidence {:.3})",
+            100.0 * drop,
+            confidence
+        ),
+    };
+    if inadequate && level != "cleared" {
+        format!(
+            "{base}; the model is flagged inadequate, so the loss may be a missing effect, not this bolt"
+        )
+    } else {
+        base
+    }
+}
+
+fn alert(structure: &str, time: DateTime<Utc>, body: Value) -> Action {
+    let mut payload = json!({
+        "schema": ALERT_SCHEMA,
+        "structure": structure,
+        "time": rfc3339(time),
+    });
+    if let (Some(p), Value::Object(b)) = (payload.as_object_mut(), body) {
+        p.extend(b);
+    }
+    Action::Publish {
+        topic: "alerts",
+        schema: ALERT_SCHEMA,
+        time,
+        payload,
+    }
+}
+
+/// `null` for a non-finite number (JSON has none).
+fn finite(v: f64) -> Option<f64> {
+    v.is_finite().then_some(v)
+}
+
+/// RFC 3339 with milliseconds and `Z`.
+pub fn rfc3339(t: DateTime<Utc>) -> String {
+    t.to_rfc3339_opts(SecondsFormat::Millis, true)
+}
+
+/// The updating data of a validated set: channels mapped onto the model, `null` entries
+/// dropped, Σ_M from the set's uncertainties by (28), else weighting (9) with `w_psi`.
+pub fn measured_data(set: &ModalSet, model: &Model, w_psi: f64) -> MeasuredData {
+    let idx: Vec<usize> = set
+        .channels
+        .iter()
+        .map(|c| model.channel_index(c).expect("validated: channel exists"))
+        .collect();
+    let raw: Vec<RawMode> = set
+        .modes
+        .iter()
+        .map(|m| RawMode {
+            frequency_hz: m.frequency_hz,
+            frequency_cov: m.frequency_cov,
+            shape: m.shape.as_ref().map(|s| {
+                s.iter()
+                    .zip(&idx)
+                    .filter_map(|(v, &c)| v.map(|v| (c, v)))
+                    .collect()
+            }),
+            shape_nsd: m.shape_nsd,
+        })
+        .collect();
+    MeasuredData::new(&raw, w_psi)
+}
+
+/// Level of a loosening state, as a string.
+pub fn level_name(level: Level) -> &'static str {
+    match level {
+        Level::Normal => "normal",
+        Level::Warning => "warning",
+        Level::Alarm => "alarm",
+    }
+}
