@@ -5,5 +5,8 @@
 pub mod commands;
 pub mod contract;
 pub mod core;
+pub mod io;
 pub mod pipeline;
 pub mod plot;
+pub mod scenario;
+pub mod settings;

@@ -2,7 +2,7 @@
 
 use std::process::ExitCode;
 
-use boltwatch::commands::{bayes, modes, simulate, update};
+use boltwatch::commands::{bayes, modes, replay, scenario, simulate, update};
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
@@ -26,6 +26,10 @@ enum Command {
     Update(update::UpdateArgs),
     /// The σ_c study of the Bayesian MAP (paper Figs. 5, 7, 15, 18): JSON and an SVG plot.
     SweepSigma(bayes::SweepArgs),
+    /// Write a synthetic monitoring recording (MCAP): healthy, loosening, sudden or mass.
+    Scenario(scenario::ScenarioArgs),
+    /// Run the tracker over a recording (MCAP) as fast as possible; outputs into an MCAP file.
+    Replay(replay::ReplayArgs),
 }
 
 fn main() -> ExitCode {
@@ -36,6 +40,8 @@ fn main() -> ExitCode {
         Command::Modes(a) => modes::run(a),
         Command::Update(a) => update::run(a),
         Command::SweepSigma(a) => bayes::run_sweep(a),
+        Command::Scenario(a) => scenario::run(a),
+        Command::Replay(a) => replay::run(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -2,6 +2,8 @@
 
 pub mod bayes;
 pub mod modes;
+pub mod replay;
+pub mod scenario;
 pub mod simulate;
 pub mod update;
 
@@ -78,4 +80,20 @@ pub fn parse_theta(model: &Model, arg: Option<&str>, flag: &str) -> Result<Vec<f
 pub fn write_json(path: &Path, value: &serde_json::Value) -> Result<()> {
     let text = serde_json::to_string_pretty(value)?;
     std::fs::write(path, text + "\n").with_context(|| format!("cannot write {}", path.display()))
+}
+
+/// Starts the `tracing` subscriber: human-readable lines on stderr, or JSON lines.
+pub fn init_logging(log: &crate::settings::LogSettings) -> Result<()> {
+    let filter = tracing_subscriber::EnvFilter::try_new(&log.level)
+        .with_context(|| format!("configuration key log.level: `{}`", log.level))?;
+    let b = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
+    let r = match log.format {
+        crate::settings::LogFormat::Human => b.try_init(),
+        crate::settings::LogFormat::Json => b.json().try_init(),
+    };
+    // Already initialised (a second command in one process, tests): keep the first.
+    let _ = r;
+    Ok(())
 }

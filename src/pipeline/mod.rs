@@ -11,6 +11,7 @@
 //! validation is published as rejected and leaves the state unchanged.
 
 pub mod alerts;
+pub mod crosscheck;
 pub mod drift;
 
 use chrono::{DateTime, SecondsFormat, Utc};
@@ -60,6 +61,11 @@ pub struct TrackerConfig {
     pub allow_equal_time: bool,
     /// Shape weight w_ψ of weighting (9), for sets without uncertainties.
     pub shape_weight: f64,
+    /// Mode matching stops when every relative step |Δθ_i|/θ_i is below this. The paper's
+    /// 1e-5 suits a one-off update; a tracked estimate is only known to its std (a few %
+    /// per set on the lab frame), so 1e-3 moves θ by under 1 % of σ (measured: at most
+    /// 0.003 σ over 300 healthy lab-frame sets) at about 30 % less work per set.
+    pub tolerance: f64,
 }
 
 impl Default for TrackerConfig {
@@ -74,6 +80,7 @@ impl Default for TrackerConfig {
             checkpoint_every_sets: 100,
             allow_equal_time: false,
             shape_weight: 1.0,
+            tolerance: 1e-3,
         }
     }
 }
@@ -111,6 +118,9 @@ impl TrackerConfig {
         }
         if !(self.shape_weight.is_finite() && self.shape_weight > 0.0) {
             return bad("shape_weight", "must be a finite number > 0");
+        }
+        if !(self.tolerance.is_finite() && self.tolerance > 0.0 && self.tolerance < 0.1) {
+            return bad("tolerance", "must be in (0, 0.1)");
         }
         Ok(())
     }
@@ -278,12 +288,16 @@ impl Tracker {
             })
             .collect();
         let mm = ModeMatching::new(Evaluator::new(&model)?);
+        let opts = ModeMatchingOptions {
+            tol: cfg.tolerance,
+            ..Default::default()
+        };
         Ok(Self {
             model,
             cfg,
             mm,
             state,
-            opts: ModeMatchingOptions::default(),
+            opts,
             is_connection,
             k_nominal,
         })

@@ -1,0 +1,212 @@
+//! `boltwatch scenario NAME -o REC.mcap`: a synthetic monitoring recording
+//! ([`crate::scenario`]): the modal sets on `boltwatch/<structure>/modal` and, beside
+//! them, the true parameters of every set on `boltwatch/<structure>/truth`.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde_json::json;
+
+use crate::core::model::Model;
+use crate::core::model::spec::ModelSpec;
+use crate::io::mcap::{ChannelSpec, McapWriter, to_ns};
+use crate::io::schemas::TRUTH_SCHEMA;
+use crate::pipeline::rfc3339;
+use crate::scenario::{Event, NAMES, Scenario};
+
+#[derive(Debug, clap::Args)]
+pub struct ScenarioArgs {
+    /// Scenario: healthy, loosening, sudden or mass.
+    pub name: String,
+    /// Model the sets are simulated from.
+    #[arg(long, default_value = "config/models/lab-frame.toml")]
+    pub model: PathBuf,
+    /// Number of modal sets.
+    #[arg(long, default_value_t = 10_000)]
+    pub sets: usize,
+    /// Days the sets span.
+    #[arg(long, default_value_t = 60.0)]
+    pub days: f64,
+    /// Random seed (ChaCha8).
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Modes per set (the lowest).
+    #[arg(long, default_value_t = 9)]
+    pub modes: usize,
+    /// Connection parameter that loosens (loosening, sudden; default: the first).
+    #[arg(long)]
+    pub connection: Option<String>,
+    /// Node the added mass is fixed to (mass; default: the second joint).
+    #[arg(long)]
+    pub at: Option<String>,
+    /// Day the event starts (loosening: 40; sudden, mass: 30).
+    #[arg(long)]
+    pub event_day: Option<f64>,
+    /// Significant digits kept of the shape entries (smaller files; 0: all).
+    #[arg(long, default_value_t = 0)]
+    pub shape_digits: u32,
+    /// Output recording.
+    #[arg(short, long)]
+    pub out: PathBuf,
+}
+
+/// Rounds `v` to `digits` significant digits (0: unchanged).
+fn significant(v: f64, digits: u32) -> f64 {
+    if digits == 0 || v == 0.0 || !v.is_finite() {
+        return v;
+    }
+    let scale = 10f64.powi(digits as i32 - 1 - v.abs().log10().floor() as i32);
+    (v * scale).round() / scale
+}
+
+pub fn run(args: &ScenarioArgs) -> Result<()> {
+    if !NAMES.contains(&args.name.as_str()) {
+        bail!(
+            "unknown scenario `{}` (known: {})",
+            args.name,
+            NAMES.join(", ")
+        );
+    }
+    if args.sets == 0 {
+        bail!("--sets must be at least 1");
+    }
+    if !(args.days.is_finite() && args.days > 0.0) {
+        bail!("--days = {} must be a finite number > 0", args.days);
+    }
+    let text = std::fs::read_to_string(&args.model)
+        .with_context(|| format!("cannot read model file {}", args.model.display()))?;
+    let spec: ModelSpec =
+        toml::from_str(&text).with_context(|| format!("model file {}", args.model.display()))?;
+    let model = Model::from_spec(&spec)?;
+    if args.modes == 0 || args.modes > model.n_dof() {
+        bail!(
+            "--modes = {} must be between 1 and {}",
+            args.modes,
+            model.n_dof()
+        );
+    }
+    let mut sc = Scenario::named(
+        &args.name,
+        &model,
+        args.connection.as_deref(),
+        args.at.as_deref(),
+    )?;
+    sc.sets = args.sets;
+    sc.days = args.days;
+    sc.seed = args.seed;
+    sc.modes = args.modes;
+    if let Some(d) = args.event_day {
+        if !(d.is_finite() && d >= 0.0) {
+            bail!("--event-day = {d} must be a finite number ≥ 0");
+        }
+        match &mut sc.event {
+            Event::Loosening { start_day, .. } => *start_day = d,
+            Event::Sudden { day, .. } | Event::Mass { day, .. } => *day = d,
+            Event::None => bail!("--event-day: the healthy scenario has no event"),
+        }
+    }
+    let channels = [
+        ChannelSpec::for_structure(&model.name, "modal")?,
+        ChannelSpec {
+            topic: crate::io::mcap::topic(&model.name, "truth"),
+            schema: TRUTH_SCHEMA,
+            schema_text: crate::io::schemas::for_topic("truth")
+                .expect("truth schema")
+                .1,
+        },
+    ];
+    let mut w = McapWriter::create(&args.out, &channels)?;
+    let names: Vec<&str> = model.parameters().iter().map(|p| p.name.as_str()).collect();
+    let pb = ProgressBar::new(sc.sets as u64).with_style(
+        ProgressStyle::with_template("{msg} {bar:40} {pos}/{len} sets ({eta} left)")
+            .expect("template"),
+    );
+    pb.set_message(format!("scenario {}", sc.name));
+    let modal_topic = &channels[0].topic;
+    let truth_topic = &channels[1].topic;
+    let mut error: Option<anyhow::Error> = None;
+    sc.generate(&spec, |k, mut set, theta| {
+        if args.shape_digits > 0 {
+            for m in &mut set.modes {
+                if let Some(s) = &mut m.shape {
+                    for v in s.iter_mut().flatten() {
+                        *v = significant(*v, args.shape_digits);
+                    }
+                }
+            }
+        }
+        let t = to_ns(set.time);
+        let result = t.and_then(|t| {
+            w.write(modal_topic, t, &serde_json::to_vec(&set.to_json())?)?;
+            let added = match &sc.event {
+                Event::Mass { at, mass, day } if sc.day(k) >= *day => {
+                    json!({"at": at, "mass_kg": mass})
+                }
+                _ => serde_json::Value::Null,
+            };
+            let truth = json!({
+                "schema": TRUTH_SCHEMA,
+                "structure": model.name,
+                "time": rfc3339(set.time),
+                "scenario": sc.name,
+                "set": k,
+                "temperature_c": sc.temperature(sc.day(k)),
+                "parameters": names,
+                "theta": theta,
+                "added_mass": added,
+            });
+            w.write(truth_topic, t, &serde_json::to_vec(&truth)?)
+        });
+        pb.inc(1);
+        if let Err(e) = result {
+            error = Some(e);
+            return Err(crate::scenario::ScenarioError::Invalid(
+                "write failed".into(),
+            ));
+        }
+        Ok(())
+    })
+    .map_err(|e| error.take().unwrap_or_else(|| e.into()))?;
+    pb.finish_and_clear();
+    w.finish()?;
+    let bytes = std::fs::metadata(&args.out)?.len();
+    println!(
+        "scenario {}: {} sets over {} days of {} ({}), {:.1} MB -> {}",
+        sc.name,
+        sc.sets,
+        sc.days,
+        model.name,
+        describe(&sc, &model),
+        bytes as f64 / 1e6,
+        args.out.display()
+    );
+    Ok(())
+}
+
+fn describe(sc: &Scenario, model: &Model) -> String {
+    let name = |l: usize| model.parameters()[l].name.clone();
+    match &sc.event {
+        Event::None => "no event".into(),
+        Event::Loosening {
+            parameter,
+            start_day,
+            duration_days,
+            loss,
+        } => format!(
+            "{} loses {:.0} % linearly over {duration_days} days from day {start_day}",
+            name(*parameter),
+            100.0 * loss
+        ),
+        Event::Sudden {
+            parameter,
+            day,
+            loss,
+        } => format!(
+            "{} drops {:.0} % on day {day}",
+            name(*parameter),
+            100.0 * loss
+        ),
+        Event::Mass { at, mass, day } => format!("{mass} kg fixed to {at} on day {day}"),
+    }
+}

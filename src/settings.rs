@@ -1,0 +1,180 @@
+//! The configuration (issue 4 item 9): `config/default.toml` compiled in, an optional file
+//! on top, `BOLTWATCH__SECTION__KEY` environment variables on top of both (the `config`
+//! crate). [`Settings::load`] checks every value once and names the key of a bad one.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use serde::Deserialize;
+
+use crate::pipeline::TrackerConfig;
+use crate::pipeline::crosscheck::CrosscheckConfig;
+
+/// The bundled defaults.
+pub const DEFAULT_TOML: &str = include_str!("../config/default.toml");
+
+/// The whole configuration.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Settings {
+    pub log: LogSettings,
+    pub structures: Vec<StructureSettings>,
+    pub tracker: TrackerConfig,
+    pub crosscheck: CrosscheckConfig,
+}
+
+/// `[log]`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LogSettings {
+    pub format: LogFormat,
+    pub level: String,
+}
+
+/// Log line format.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LogFormat {
+    Human,
+    Json,
+}
+
+/// One `[[structures]]` entry.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StructureSettings {
+    /// The structure's name, as in its model file and the key expressions.
+    pub name: String,
+    /// Its model file.
+    pub model: PathBuf,
+}
+
+impl Settings {
+    /// Defaults, then `file` (if given; it must exist), then the environment.
+    pub fn load(file: Option<&Path>) -> Result<Self> {
+        Self::load_with_env(file, std::env::vars())
+    }
+
+    /// [`Settings::load`] with the environment given (tests).
+    pub fn load_with_env(
+        file: Option<&Path>,
+        env: impl IntoIterator<Item = (String, String)>,
+    ) -> Result<Self> {
+        let mut b = config::Config::builder().add_source(config::File::from_str(
+            DEFAULT_TOML,
+            config::FileFormat::Toml,
+        ));
+        if let Some(f) = file {
+            if !f.is_file() {
+                bail!("configuration file {} does not exist", f.display());
+            }
+            b = b.add_source(config::File::from(f).format(config::FileFormat::Toml));
+        }
+        let env: config::Map<String, String> = env
+            .into_iter()
+            .filter(|(k, _)| k.starts_with("BOLTWATCH__"))
+            .collect();
+        b = b.add_source(
+            config::Environment::with_prefix("BOLTWATCH")
+                .prefix_separator("__")
+                .separator("__")
+                .try_parsing(true)
+                .source(Some(env)),
+        );
+        let what = file.map_or("the default configuration".to_string(), |f| {
+            format!("configuration {}", f.display())
+        });
+        let s: Settings = b
+            .build()
+            .and_then(|c| c.try_deserialize())
+            .with_context(|| format!("bad {what}"))?;
+        s.validate().with_context(|| format!("bad {what}"))?;
+        Ok(s)
+    }
+
+    fn validate(&self) -> Result<()> {
+        self.tracker.validate()?;
+        self.crosscheck.validate()?;
+        if self.structures.is_empty() {
+            bail!("configuration key structures: watch at least one structure");
+        }
+        for (i, s) in self.structures.iter().enumerate() {
+            if s.name.is_empty() || s.name.contains(['/', '*', '$', '?', '#']) {
+                bail!(
+                    "configuration key structures[{i}].name: `{}` is not a usable key-expression chunk",
+                    s.name
+                );
+            }
+            if self.structures[..i].iter().any(|o| o.name == s.name) {
+                bail!(
+                    "configuration key structures[{i}].name: `{}` is watched twice",
+                    s.name
+                );
+            }
+        }
+        if tracing_subscriber::EnvFilter::try_new(&self.log.level).is_err() {
+            bail!(
+                "configuration key log.level: `{}` is not a tracing filter",
+                self.log.level
+            );
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn env(pairs: &[(&str, &str)]) -> Vec<(String, String)> {
+        pairs
+            .iter()
+            .map(|(k, v)| (k.to_string(), v.to_string()))
+            .collect()
+    }
+
+    #[test]
+    fn defaults_load_and_environment_overrides() {
+        let s = Settings::load_with_env(None, env(&[])).unwrap();
+        assert_eq!(s.structures[0].name, "lab-frame");
+        assert_eq!(s.tracker, TrackerConfig::default());
+        let s = Settings::load_with_env(
+            None,
+            env(&[
+                ("BOLTWATCH__TRACKER__ALERTS__ALARM_DROP", "0.3"),
+                ("BOLTWATCH__LOG__FORMAT", "json"),
+            ]),
+        )
+        .unwrap();
+        assert_eq!(s.tracker.alerts.alarm_drop, 0.3);
+        assert_eq!(s.log.format, LogFormat::Json);
+    }
+
+    /// A bad value fails with its key named: out of range, wrong type, unknown key.
+    #[test]
+    fn bad_values_name_their_key() {
+        for (pairs, key) in [
+            (
+                vec![("BOLTWATCH__TRACKER__ALERTS__ALARM_DROP", "1.5")],
+                "tracker.alerts.alarm_drop",
+            ),
+            (
+                vec![("BOLTWATCH__TRACKER__BASELINE_SETS", "many")],
+                "baseline_sets",
+            ),
+            (
+                vec![("BOLTWATCH__TRACKER__ALARM_LEVEL", "3")],
+                "alarm_level",
+            ),
+            (vec![("BOLTWATCH__LOG__FORMAT", "xml")], "format"),
+            (
+                vec![("BOLTWATCH__CROSSCHECK__DISAGREE_Z", "-1")],
+                "crosscheck.disagree_z",
+            ),
+        ] {
+            let e = Settings::load_with_env(None, env(&pairs)).unwrap_err();
+            let msg = format!("{e:#}");
+            assert!(msg.contains(key), "{pairs:?}: {msg}");
+        }
+    }
+}
