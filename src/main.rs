@@ -2,7 +2,7 @@
 
 use std::process::ExitCode;
 
-use boltwatch::commands::{bayes, modes, replay, scenario, simulate, update};
+use boltwatch::commands::{bayes, modes, replay, report, scenario, simulate, update};
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
@@ -30,6 +30,8 @@ enum Command {
     Scenario(scenario::ScenarioArgs),
     /// Run the tracker over a recording (MCAP) as fast as possible; outputs into an MCAP file.
     Replay(replay::ReplayArgs),
+    /// Plot a replay's outputs: stiffness histories with bands and alerts, frequencies, ε.
+    Report(report::ReportArgs),
 }
 
 fn main() -> ExitCode {
@@ -42,6 +44,7 @@ fn main() -> ExitCode {
         Command::SweepSigma(a) => bayes::run_sweep(a),
         Command::Scenario(a) => scenario::run(a),
         Command::Replay(a) => replay::run(a),
+        Command::Report(a) => report::run(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

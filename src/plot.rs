@@ -21,6 +21,10 @@ pub struct Series {
     pub markers: bool,
     /// Draw the connecting line.
     pub line: bool,
+    /// Colour (default: the palette's, by position).
+    pub color: Option<&'static str>,
+    /// Line width.
+    pub width: f64,
 }
 
 impl Series {
@@ -31,7 +35,36 @@ impl Series {
             y,
             markers: true,
             line: true,
+            color: None,
+            width: 1.6,
         }
+    }
+
+    /// Markers only.
+    pub fn points(label: impl Into<String>, x: Vec<f64>, y: Vec<f64>) -> Self {
+        Self {
+            line: false,
+            ..Self::line(label, x, y)
+        }
+    }
+
+    /// A line without markers (long histories).
+    pub fn trace(label: impl Into<String>, x: Vec<f64>, y: Vec<f64>) -> Self {
+        Self {
+            markers: false,
+            ..Self::line(label, x, y)
+        }
+    }
+
+    pub fn with_color(self, color: &'static str) -> Self {
+        Self {
+            color: Some(color),
+            ..self
+        }
+    }
+
+    pub fn with_width(self, width: f64) -> Self {
+        Self { width, ..self }
     }
 }
 
@@ -48,6 +81,17 @@ pub struct Panel {
     pub vlines: Vec<(f64, String)>,
     /// Horizontal reference lines `(y, label)`.
     pub hlines: Vec<(f64, String)>,
+    /// Shaded bands (e.g. a 95 % interval), drawn under the series.
+    pub bands: Vec<Band>,
+}
+
+/// A shaded region between `lower` and `upper` over `x`.
+#[derive(Debug, Clone)]
+pub struct Band {
+    pub label: String,
+    pub x: Vec<f64>,
+    pub lower: Vec<f64>,
+    pub upper: Vec<f64>,
 }
 
 impl Panel {
@@ -61,6 +105,7 @@ impl Panel {
             series: Vec::new(),
             vlines: Vec::new(),
             hlines: Vec::new(),
+            bands: Vec::new(),
         }
     }
 }
@@ -199,7 +244,12 @@ fn panel_svg(out: &mut String, p: &Panel, ox: f64, oy: f64) {
         p.series
             .iter()
             .flat_map(|s| s.y.iter().copied())
-            .chain(p.hlines.iter().map(|v| v.0)),
+            .chain(p.hlines.iter().map(|v| v.0))
+            .chain(
+                p.bands
+                    .iter()
+                    .flat_map(|b| b.lower.iter().chain(&b.upper).copied()),
+            ),
         p.y_scale,
     );
     let (pw, ph) = (W - LEFT - RIGHT, H - TOP - BOTTOM);
@@ -291,8 +341,29 @@ fn panel_svg(out: &mut String, p: &Panel, ox: f64, oy: f64) {
             );
         }
     }
-    for (k, s) in p.series.iter().enumerate() {
+    for (k, b) in p.bands.iter().enumerate() {
         let color = PALETTE[k % PALETTE.len()];
+        let pts: Vec<(f64, f64, f64)> =
+            b.x.iter()
+                .zip(b.lower.iter().zip(&b.upper))
+                .filter(|(x, (lo, hi))| xa.valid(**x) && ya.valid(**lo) && ya.valid(**hi))
+                .map(|(x, (lo, hi))| (px(*x), py(*lo), py(*hi)))
+                .collect();
+        if pts.len() > 1 {
+            let upper = pts.iter().map(|(x, _, hi)| format!("{x:.1},{hi:.1}"));
+            let lower = pts.iter().rev().map(|(x, lo, _)| format!("{x:.1},{lo:.1}"));
+            let d: Vec<String> = upper.chain(lower).collect();
+            let _ = writeln!(
+                out,
+                r#"<polygon points="{}" fill="{color}" fill-opacity="0.18" stroke="none"><title>{}</title></polygon>"#,
+                d.join(" "),
+                esc(&b.label)
+            );
+        }
+    }
+    let mut legend = 0usize;
+    for (k, s) in p.series.iter().enumerate() {
+        let color = s.color.unwrap_or(PALETTE[k % PALETTE.len()]);
         let dash = if k >= PALETTE.len() {
             r#" stroke-dasharray="6,3""#
         } else {
@@ -308,19 +379,25 @@ fn panel_svg(out: &mut String, p: &Panel, ox: f64, oy: f64) {
             let d: Vec<String> = pts.iter().map(|(x, y)| format!("{x:.1},{y:.1}")).collect();
             let _ = writeln!(
                 out,
-                r#"<polyline points="{}" fill="none" stroke="{color}" stroke-width="1.6"{dash}/>"#,
-                d.join(" ")
+                r#"<polyline points="{}" fill="none" stroke="{color}" stroke-width="{}"{dash}/>"#,
+                d.join(" "),
+                s.width
             );
         }
         if s.markers {
             for (x, y) in &pts {
                 let _ = writeln!(
                     out,
-                    r#"<circle cx="{x:.1}" cy="{y:.1}" r="2.4" fill="{color}"/>"#
+                    r#"<circle cx="{x:.1}" cy="{y:.1}" r="{}" fill="{color}"/>"#,
+                    if s.line { 2.4 } else { 4.0 }
                 );
             }
         }
-        let ly = oy + TOP + 8.0 + 15.0 * k as f64;
+        if s.label.is_empty() {
+            continue;
+        }
+        let ly = oy + TOP + 8.0 + 15.0 * legend as f64;
+        legend += 1;
         let lx = ox + LEFT + pw + 10.0;
         let _ = writeln!(
             out,

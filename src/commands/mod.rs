@@ -3,6 +3,7 @@
 pub mod bayes;
 pub mod modes;
 pub mod replay;
+pub mod report;
 pub mod scenario;
 pub mod simulate;
 pub mod update;

@@ -26,6 +26,11 @@ use crate::core::updating::{
     Evaluator, MeasuredData, ModeMatching, ModeMatchingOptions, ModeMatchingResult, UpdateError,
     chi2_bound,
 };
+
+/// Degrees of freedom ν of ε used by [`chi2_bound`].
+fn chi2_nu(n_data: usize, n_params: usize) -> f64 {
+    n_data.saturating_sub(n_params).max(1) as f64
+}
 use alerts::{AlertThresholds, InadequacyState, Level, LooseningState};
 use drift::{DriftFilter, DriftNoise, Z95};
 
@@ -482,10 +487,12 @@ impl Tracker {
         });
         // Alerts.
         let st = &mut self.state;
-        if let Some(level) = st
-            .inadequacy
-            .step(res.epsilon(), bound, self.cfg.alerts.persistence)
-        {
+        if let Some(level) = st.inadequacy.step(
+            res.epsilon(),
+            chi2_nu(data.n_data(), self.model.n_params()),
+            self.cfg.alerts.inadequacy_window,
+            self.cfg.alerts.persistence,
+        ) {
             actions.push(alert(
                 &self.model.name,
                 set.time,
@@ -500,9 +507,10 @@ impl Tracker {
                         format!("ε = {:.1} back within its χ² bound {bound:.1}", res.epsilon())
                     } else {
                         format!(
-                            "ε = {:.1} above its χ² bound {bound:.1} on {} successive sets: the model \
-                             class misses an effect; loosening verdicts are unreliable until diagnosed",
+                            "ε = {:.1} (χ² bound {bound:.1}): ε above its χ² bound, alone or summed over the last {} sets, \
+                             on {} successive sets: the model class misses an effect; loosening verdicts are unreliable until diagnosed",
                             res.epsilon(),
+                            self.cfg.alerts.inadequacy_window,
                             self.cfg.alerts.persistence
                         )
                     },

@@ -1,0 +1,278 @@
+//! `boltwatch report OUT.mcap -o DIR`: plots of a replay's (or the daemon's) outputs, per
+//! structure: `DIR/<structure>-stiffness.svg` (each parameter's estimate per set, its
+//! filtered level with the 95 % band, the baseline, alert markers),
+//! `DIR/<structure>-frequencies.svg` (measured and model frequencies, and their
+//! difference) and `DIR/<structure>-epsilon.svg` (ε against its χ² bound, with the
+//! model-inadequacy alerts). Time in days from the first estimate.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail};
+use chrono::{DateTime, Utc};
+use serde_json::Value;
+
+use crate::io::mcap::read_all;
+use crate::plot::{Band, Panel, Scale, Series, figure_svg};
+
+#[derive(Debug, clap::Args)]
+pub struct ReportArgs {
+    /// Output recording of `replay` or `run`.
+    pub recording: PathBuf,
+    /// Directory for the plots (created).
+    #[arg(short, long)]
+    pub out: PathBuf,
+}
+
+/// Outputs of one structure, in file order.
+#[derive(Default)]
+struct Outputs {
+    stiffness: Vec<Value>,
+    alerts: Vec<Value>,
+    crosscheck: Vec<Value>,
+    rejected: usize,
+}
+
+fn time(v: &Value) -> Option<DateTime<Utc>> {
+    DateTime::parse_from_rfc3339(v["time"].as_str()?)
+        .ok()
+        .map(|t| t.with_timezone(&Utc))
+}
+
+fn f(v: &Value) -> f64 {
+    v.as_f64().unwrap_or(f64::NAN)
+}
+
+pub fn run(args: &ReportArgs) -> Result<()> {
+    let msgs = read_all(&args.recording)?;
+    let mut by: BTreeMap<String, Outputs> = BTreeMap::new();
+    for m in &msgs {
+        let mut parts = m.topic.split('/');
+        let (Some("boltwatch"), Some(s), Some(suffix)) = (parts.next(), parts.next(), parts.next())
+        else {
+            continue;
+        };
+        let o = by.entry(s.to_string()).or_default();
+        let parse = || {
+            serde_json::from_slice::<Value>(&m.data)
+                .with_context(|| format!("{}: message {} is not JSON", m.topic, m.sequence))
+        };
+        match suffix {
+            "stiffness" => o.stiffness.push(parse()?),
+            "alerts" => o.alerts.push(parse()?),
+            "crosscheck" => o.crosscheck.push(parse()?),
+            "rejected" => o.rejected += 1,
+            _ => {}
+        }
+    }
+    by.retain(|_, o| !o.stiffness.is_empty());
+    if by.is_empty() {
+        bail!(
+            "{} has no boltwatch/<structure>/stiffness messages to report",
+            args.recording.display()
+        );
+    }
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("cannot create {}", args.out.display()))?;
+    for (structure, o) in &by {
+        let files = report_structure(structure, o)?;
+        for (name, svg) in files {
+            let path = args.out.join(format!("{structure}-{name}.svg"));
+            std::fs::write(&path, svg)
+                .with_context(|| format!("cannot write {}", path.display()))?;
+            println!("{}", path.display());
+        }
+    }
+    Ok(())
+}
+
+fn report_structure(structure: &str, o: &Outputs) -> Result<Vec<(&'static str, String)>> {
+    let t0 = o
+        .stiffness
+        .iter()
+        .find_map(time)
+        .context("estimates without a time")?;
+    let day = |v: &Value| {
+        time(v).map_or(f64::NAN, |t| {
+            (t - t0).num_milliseconds() as f64 / 86_400_000.0
+        })
+    };
+    let days: Vec<f64> = o.stiffness.iter().map(day).collect();
+    let names: Vec<String> = o.stiffness[0]["parameters"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .map(|p| p["name"].as_str().unwrap_or_default().to_string())
+        .collect();
+    // Stiffness: one panel per parameter.
+    let mut panels = Vec::new();
+    for (l, name) in names.iter().enumerate() {
+        let col = |get: &dyn Fn(&Value) -> f64| -> Vec<f64> {
+            o.stiffness
+                .iter()
+                .map(|e| get(&e["parameters"][l]))
+                .collect()
+        };
+        let mut p = Panel::new(
+            &format!("{structure}: {name}"),
+            "time, days",
+            "θ (relative stiffness)",
+            Scale::Linear,
+            Scale::Linear,
+        );
+        p.bands.push(Band {
+            label: "95 % band of the filtered level".into(),
+            x: days.clone(),
+            lower: col(&|v| f(&v["filtered"]["lower95"])),
+            upper: col(&|v| f(&v["filtered"]["upper95"])),
+        });
+        p.series.push(
+            Series::trace("θ per set", days.clone(), col(&|v| f(&v["theta"])))
+                .with_color("#9a9a9a")
+                .with_width(0.6),
+        );
+        p.series.push(
+            Series::trace(
+                "filtered",
+                days.clone(),
+                col(&|v| f(&v["filtered"]["level"])),
+            )
+            .with_color("#1f77b4"),
+        );
+        if let Some(b) = o
+            .stiffness
+            .iter()
+            .rev()
+            .find_map(|e| e["parameters"][l]["baseline"].as_f64())
+        {
+            p.hlines.push((b, "baseline".into()));
+        }
+        for (level, color) in [
+            ("warning", "#ff7f0e"),
+            ("alarm", "#d62728"),
+            ("cleared", "#2ca02c"),
+        ] {
+            let hits: Vec<&Value> = o
+                .alerts
+                .iter()
+                .filter(|a| a["connection"].as_str() == Some(name) && a["level"] == level)
+                .collect();
+            if !hits.is_empty() {
+                p.series.push(
+                    Series::points(
+                        level,
+                        hits.iter().map(|a| day(a)).collect(),
+                        hits.iter().map(|a| f(&a["theta"])).collect(),
+                    )
+                    .with_color(color),
+                );
+            }
+        }
+        panels.push(p);
+    }
+    let stiffness = figure_svg(&panels, 3);
+    // Frequencies.
+    let n_modes = o
+        .stiffness
+        .iter()
+        .map(|e| e["modes"].as_array().map_or(0, Vec::len))
+        .max()
+        .unwrap_or(0);
+    let mut pf = Panel::new(
+        &format!("{structure}: measured (grey) and model frequencies"),
+        "time, days",
+        "frequency, Hz",
+        Scale::Linear,
+        Scale::Log,
+    );
+    let mut pe = Panel::new(
+        &format!("{structure}: model − measured frequency"),
+        "time, days",
+        "difference, % of measured",
+        Scale::Linear,
+        Scale::Linear,
+    );
+    for m in 0..n_modes {
+        let get =
+            |k: &str| -> Vec<f64> { o.stiffness.iter().map(|e| f(&e["modes"][m][k])).collect() };
+        let (meas, model) = (get("measured_hz"), get("model_hz"));
+        pf.series.push(
+            Series::trace(
+                if m == 0 { "measured" } else { "" },
+                days.clone(),
+                meas.clone(),
+            )
+            .with_color("#b0b0b0")
+            .with_width(0.6),
+        );
+        pf.series.push(
+            Series::trace(format!("mode {}", m + 1), days.clone(), model.clone()).with_width(1.0),
+        );
+        pe.series.push(
+            Series::trace(
+                format!("mode {}", m + 1),
+                days.clone(),
+                meas.iter()
+                    .zip(&model)
+                    .map(|(a, b)| 100.0 * (b - a) / a)
+                    .collect(),
+            )
+            .with_width(0.8),
+        );
+    }
+    let frequencies = figure_svg(&[pf, pe], 1);
+    // ε.
+    let mut pe = Panel::new(
+        &format!("{structure}: misfit ε (5) per set"),
+        "time, days",
+        "ε",
+        Scale::Linear,
+        Scale::Log,
+    );
+    pe.series.push(
+        Series::trace(
+            "ε",
+            days.clone(),
+            o.stiffness.iter().map(|e| f(&e["epsilon"])).collect(),
+        )
+        .with_width(0.8),
+    );
+    pe.series.push(
+        Series::trace(
+            "χ² bound",
+            days.clone(),
+            o.stiffness.iter().map(|e| f(&e["epsilon_bound"])).collect(),
+        )
+        .with_color("#555555"),
+    );
+    for a in o.alerts.iter().filter(|a| a["kind"] == "model-inadequate") {
+        pe.vlines.push((
+            day(a),
+            format!(
+                "model-inadequate {}",
+                a["level"].as_str().unwrap_or_default()
+            ),
+        ));
+    }
+    let cold: Vec<&Value> = o
+        .stiffness
+        .iter()
+        .filter(|e| e["warm_start"] == false)
+        .collect();
+    if !cold.is_empty() {
+        pe.series.push(
+            Series::points(
+                "cold start",
+                cold.iter().map(|e| day(e)).collect(),
+                cold.iter().map(|e| f(&e["epsilon"])).collect(),
+            )
+            .with_color("#d62728"),
+        );
+    }
+    let epsilon = figure_svg(&[pe], 1);
+    Ok(vec![
+        ("stiffness", stiffness),
+        ("frequencies", frequencies),
+        ("epsilon", epsilon),
+    ])
+}
