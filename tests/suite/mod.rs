@@ -7,3 +7,4 @@ mod fe;
 mod modal_set;
 mod mode_matching;
 mod sensitivity;
+mod tracker;
