@@ -6,5 +6,6 @@ mod common;
 mod fe;
 mod modal_set;
 mod mode_matching;
+mod replay_cli;
 mod sensitivity;
 mod tracker;

@@ -1,0 +1,327 @@
+//! `boltwatch replay`, `report` and `scenario` as a user runs them: SIGKILL and resume,
+//! the official Python `mcap` reader on the output, configuration errors.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::Instant;
+
+use rand::{Rng, SeedableRng};
+
+use super::tracker::{make_scenario, payloads, tmp_dir};
+use boltwatch::io::mcap::{ChannelSpec, McapWriter, read_all, topic};
+
+fn bin() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_boltwatch"));
+    c.current_dir(env!("CARGO_MANIFEST_DIR"))
+        .env("BOLTWATCH__LOG__LEVEL", "warn");
+    c
+}
+
+/// Checkpoints every 5 sets, cross-checks every 50.
+const ENV: [(&str, &str); 3] = [
+    ("BOLTWATCH__TRACKER__CHECKPOINT_EVERY_SETS", "5"),
+    ("BOLTWATCH__TRACKER__CROSSCHECK_EVERY_SETS", "50"),
+    ("BOLTWATCH__TRACKER__CROSSCHECK_EVERY_S", "0"),
+];
+
+fn replay_cmd(rec: &Path, out: &Path, resume: bool) -> Command {
+    let mut c = bin();
+    c.arg("replay").arg(rec).arg("-o").arg(out);
+    if resume {
+        c.arg("--resume");
+    }
+    c.envs(ENV).stdout(Stdio::piped()).stderr(Stdio::piped());
+    c
+}
+
+/// SIGKILL the replay at 10 random points and resume each time: the final output file is
+/// byte-identical to an uninterrupted run's, so no estimate is lost or written twice.
+#[test]
+fn killed_replay_resumes_to_the_same_bytes() {
+    let d = tmp_dir("kill");
+    let rec = d.join("rec.mcap");
+    make_scenario("loosening", 300, 60.0, &rec);
+    let reference = d.join("ref.mcap");
+    let t0 = Instant::now();
+    let o = replay_cmd(&rec, &reference, false).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let full = t0.elapsed();
+    let out = d.join("out.mcap");
+    let ckpt = d.join("out.mcap.checkpoint.json");
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+    // Ten kill points spread over the run: wait until the checkpoint has passed a random
+    // set, then a random further 0–250 ms (0 to about 10 sets, two checkpoint intervals),
+    // so kills fall anywhere: mid-set, mid-chunk, mid-checkpoint.
+    let mut targets: Vec<u64> = (0..10).map(|_| rng.random_range(0..280)).collect();
+    targets.sort_unstable();
+    let next_input = || {
+        std::fs::read(&ckpt)
+            .ok()
+            .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok())
+            .and_then(|c| c["next_input"].as_u64())
+    };
+    let mut resumed_at = Vec::new();
+    for (k, target) in targets.iter().enumerate() {
+        let mut child = replay_cmd(&rec, &out, k > 0).spawn().unwrap();
+        while next_input().unwrap_or(0) < *target && child.try_wait().unwrap().is_none() {
+            std::thread::sleep(std::time::Duration::from_millis(5));
+        }
+        std::thread::sleep(std::time::Duration::from_millis(rng.random_range(0..250)));
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "kill {k}: the replay ended before it (full run {full:?})"
+        );
+        child.kill().unwrap(); // SIGKILL
+        child.wait().unwrap();
+        resumed_at.push(next_input());
+    }
+    println!("full run {full:?}; checkpoint after each kill: {resumed_at:?}");
+    assert!(
+        resumed_at.iter().flatten().any(|&n| n > 0),
+        "no checkpoint was ever written"
+    );
+    let o = replay_cmd(&rec, &out, true).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(stdout.contains("resumed at set"), "{stdout}");
+    let (a, b) = (
+        std::fs::read(&reference).unwrap(),
+        std::fs::read(&out).unwrap(),
+    );
+    assert!(
+        a == b,
+        "resumed output differs ({} vs {} bytes)",
+        a.len(),
+        b.len()
+    );
+    let est = payloads(&read_all(&out).unwrap(), "stiffness");
+    assert_eq!(est.len(), 300);
+    assert!(
+        est.windows(2)
+            .all(|w| w[0]["time"].as_str() < w[1]["time"].as_str())
+    );
+    // A resume of a complete run changes nothing and says so.
+    let o = replay_cmd(&rec, &out, true).output().unwrap();
+    assert!(String::from_utf8_lossy(&o.stdout).contains("already replayed"));
+    assert!(std::fs::read(&out).unwrap() == a);
+}
+
+/// A virtual environment with the official Python `mcap` reader, made once per target
+/// directory.
+fn python_with_mcap() -> PathBuf {
+    let target = std::env::current_exe()
+        .unwrap()
+        .ancestors()
+        .nth(3)
+        .unwrap()
+        .to_path_buf();
+    let venv = target.join("py-mcap-venv");
+    let python = venv.join("bin/python");
+    if !python.exists() {
+        let ok = Command::new("python3")
+            .args(["-m", "venv"])
+            .arg(&venv)
+            .status()
+            .unwrap()
+            .success();
+        assert!(ok, "python3 -m venv failed");
+    }
+    let ok = Command::new(&python)
+        .args(["-c", "import mcap, zstandard"])
+        .status()
+        .unwrap()
+        .success();
+    if !ok {
+        let ok = Command::new(&python)
+            .args([
+                "-m",
+                "pip",
+                "install",
+                "--quiet",
+                "mcap==1.6.0",
+                "zstandard==0.25.0",
+            ])
+            .status()
+            .unwrap()
+            .success();
+        assert!(ok, "pip install mcap failed");
+    }
+    python
+}
+
+/// The official Python `mcap` package reads the output: every channel and schema (JSON
+/// Schema text that parses), every message (JSON that parses and names its schema), with
+/// the same counts as our reader.
+#[test]
+fn python_mcap_reads_every_channel_and_schema() {
+    let d = tmp_dir("python");
+    let rec = d.join("rec.mcap");
+    make_scenario("sudden", 120, 60.0, &rec);
+    // One bad set, so that every output channel has messages.
+    let mixed = d.join("mixed.mcap");
+    {
+        let all = read_all(&rec).unwrap();
+        let modal = topic("lab-frame", "modal");
+        let mut w = McapWriter::create(
+            &mixed,
+            &[ChannelSpec::for_structure("lab-frame", "modal").unwrap()],
+        )
+        .unwrap();
+        for m in all.iter().filter(|m| m.topic == modal) {
+            w.write(&modal, m.log_time, &m.data).unwrap();
+        }
+        w.write(
+            &modal,
+            u64::MAX / 2,
+            br#"{"schema": "boltwatch.modal_set.v1"}"#,
+        )
+        .unwrap();
+        w.finish().unwrap();
+    }
+    let out = d.join("out.mcap");
+    let o = bin()
+        .arg("replay")
+        .arg(&mixed)
+        .arg("-o")
+        .arg(&out)
+        .env("BOLTWATCH__TRACKER__CROSSCHECK_EVERY_SETS", "50")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let script = r#"
+import json, sys
+from mcap.reader import make_reader
+with open(sys.argv[1], "rb") as f:
+    reader = make_reader(f)
+    summary = reader.get_summary()
+    schemas = {i: s for i, s in summary.schemas.items()}
+    for s in schemas.values():
+        assert s.encoding == "jsonschema", s.encoding
+        assert json.loads(s.data)["title"] == s.name, s.name
+    counts = {c.topic: 0 for c in summary.channels.values()}
+    for schema, channel, message in reader.iter_messages():
+        assert channel.message_encoding == "json"
+        body = json.loads(message.data)
+        assert body["schema"] == schema.name, (body["schema"], schema.name)
+        assert body["structure"] == "lab-frame"
+        counts[channel.topic] += 1
+    print(json.dumps({"counts": counts, "schemas": sorted(s.name for s in schemas.values()),
+                      "stats": summary.statistics.message_count}))
+"#;
+    let o = Command::new(python_with_mcap())
+        .arg("-c")
+        .arg(script)
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "python: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    println!("{v}");
+    let ours = read_all(&out).unwrap();
+    for suffix in ["stiffness", "alerts", "crosscheck", "rejected"] {
+        let t = topic("lab-frame", suffix);
+        let n = ours.iter().filter(|m| m.topic == t).count();
+        assert!(n > 0, "no {suffix} messages to read");
+        assert_eq!(v["counts"][&t], n, "{t}");
+    }
+    assert_eq!(v["stats"], ours.len());
+    assert_eq!(v["schemas"].as_array().unwrap().len(), 4);
+}
+
+/// `report` writes the three plots, each an SVG with one panel per parameter / mode.
+#[test]
+fn report_draws_stiffness_frequency_and_epsilon() {
+    let d = tmp_dir("report");
+    let rec = d.join("rec.mcap");
+    make_scenario("sudden", 80, 60.0, &rec);
+    let out = d.join("out.mcap");
+    let o = bin()
+        .arg("replay")
+        .arg(&rec)
+        .arg("-o")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        stdout.contains("C1L@J1L") && stdout.contains("loosening alarm"),
+        "{stdout}"
+    );
+    let o = bin()
+        .arg("report")
+        .arg(&out)
+        .arg("-o")
+        .arg(d.join("plots"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for name in ["stiffness", "frequencies", "epsilon"] {
+        let svg = std::fs::read_to_string(d.join(format!("plots/lab-frame-{name}.svg"))).unwrap();
+        assert!(
+            svg.starts_with("<svg") || svg.starts_with("<?xml"),
+            "{name}"
+        );
+        assert!(svg.contains("</svg>"));
+    }
+    let svg = std::fs::read_to_string(d.join("plots/lab-frame-stiffness.svg")).unwrap();
+    assert_eq!(
+        svg.matches("<polygon").count(),
+        17,
+        "a 95 % band per parameter"
+    );
+    assert!(svg.contains(">alarm<"), "alarm marker in the legend");
+}
+
+/// Bad configuration fails at start, exit code 2, naming the key; a rejected input is not
+/// a configuration error.
+#[test]
+fn bad_configuration_fails_naming_the_key() {
+    let d = tmp_dir("config");
+    let rec = d.join("rec.mcap");
+    make_scenario("healthy", 3, 1.0, &rec);
+    for (text, key) in [
+        (
+            "[tracker.alerts]\nalarm_drop = 2.0\n",
+            "tracker.alerts.alarm_drop",
+        ),
+        ("[tracker]\nbaseline_set = 5\n", "baseline_set"),
+        (
+            "[tracker.drift]\nlevel_per_day = \"fast\"\n",
+            "level_per_day",
+        ),
+        (
+            "[[structures]]\nname = \"lab/frame\"\nmodel = \"x.toml\"\n",
+            "structures[0].name",
+        ),
+    ] {
+        let c = d.join("bad.toml");
+        std::fs::write(&c, text).unwrap();
+        let o = bin()
+            .arg("replay")
+            .arg(&rec)
+            .arg("--config")
+            .arg(&c)
+            .arg("-o")
+            .arg(d.join("o.mcap"))
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{text}: {err}");
+        assert!(err.contains(key), "{text}: {err}");
+    }
+    let o = bin()
+        .arg("replay")
+        .arg(&rec)
+        .arg("-o")
+        .arg(d.join("o.mcap"))
+        .env("BOLTWATCH__TRACKER__ALERTS__PERSISTENCE", "0")
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("tracker.alerts.persistence"));
+}
