@@ -66,6 +66,13 @@ fn bench_update(c: &mut Criterion) {
     });
 
     let mut evaluator = Evaluator::new(&model).unwrap();
+    c.bench_function("lab_frame_evaluate", |b| {
+        b.iter(|| {
+            evaluator
+                .evaluate(black_box(&model), black_box(&data), black_box(&theta0))
+                .unwrap()
+        })
+    });
     c.bench_function("lab_frame_evaluate_and_jacobian", |b| {
         b.iter(|| {
             let ev = evaluator

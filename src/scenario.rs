@@ -228,7 +228,7 @@ impl Scenario {
         spec: &ModelSpec,
         mut sink: impl FnMut(usize, ModalSet, &[f64]) -> Result<(), ScenarioError>,
     ) -> Result<(), ScenarioError> {
-        if self.sets == 0 || !(self.days > 0.0) {
+        if self.sets == 0 || self.days.is_nan() || self.days <= 0.0 {
             return Err(ScenarioError::Invalid(
                 "a scenario needs at least one set over a positive duration".into(),
             ));

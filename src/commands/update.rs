@@ -126,6 +126,7 @@ fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
             .map_or(StepControl::LevenbergMarquardt, StepControl::FixedKappa),
         tol: args.tol,
         max_iterations: args.max_iter.unwrap_or(200),
+        take_final_step: true,
     };
     let mut mm = ModeMatching::new(Evaluator::new(model)?);
     // The paper's fixed-κ Gauss–Newton runs as published; the default is globalized.

@@ -235,13 +235,13 @@ pub fn read_tolerant(path: &Path) -> Result<(Vec<RecordedMessage>, Option<String
     Ok((out, None))
 }
 
+/// Modal sets, each with its structure, in log-time order; and the topics not read.
+pub type ModalSets = (Vec<(String, RecordedMessage)>, BTreeMap<String, u64>);
+
 /// The modal sets of a recording: the messages on `boltwatch/<s>/modal` for each watched
 /// structure `s`, in log-time order (file order among equal times), and the topics present
 /// that were not read (other structures, other channels) with their message counts.
-pub fn read_modal_sets(
-    path: &Path,
-    structures: &[&str],
-) -> Result<(Vec<(String, RecordedMessage)>, BTreeMap<String, u64>)> {
+pub fn read_modal_sets(path: &Path, structures: &[&str]) -> Result<ModalSets> {
     let all = read_all(path)?;
     let wanted: HashMap<String, &str> =
         structures.iter().map(|s| (topic(s, "modal"), *s)).collect();

@@ -273,7 +273,13 @@ mod tests {
                 .collect::<Vec<_>>()
         };
         // Alternating ±σ/2 scatter around the truth, deterministic.
-        let noise = |k: usize| if k % 2 == 0 { 0.5 * sd } else { -0.5 * sd };
+        let noise = |k: usize| {
+            if k.is_multiple_of(2) {
+                0.5 * sd
+            } else {
+                -0.5 * sd
+            }
+        };
         let ys: Vec<f64> = (0..300)
             .map(|k| if k < 200 { 1.0 } else { 0.4 } + noise(k))
             .collect();

@@ -295,6 +295,7 @@ impl Tracker {
         let mm = ModeMatching::new(Evaluator::new(&model)?);
         let opts = ModeMatchingOptions {
             tol: cfg.tolerance,
+            take_final_step: false,
             ..Default::default()
         };
         Ok(Self {
