@@ -182,6 +182,9 @@ pub struct TrackerState {
     /// θ and its std after the last converged update (the warm start).
     pub theta: Option<Vec<f64>>,
     pub std: Option<Vec<f64>>,
+    /// Covariance (15) of that θ, row by row.
+    #[serde(default)]
+    pub covariance: Option<Vec<Vec<f64>>>,
     /// ε of the last update.
     pub epsilon: Option<f64>,
     /// Baseline θ, once the commissioning sets are in.
@@ -221,6 +224,7 @@ impl Tracker {
             origin: None,
             theta: None,
             std: None,
+            covariance: None,
             epsilon: None,
             baseline: None,
             filters: nominal
@@ -413,6 +417,11 @@ impl Tracker {
         if converged {
             st.theta = Some(res.theta.clone());
             st.std = Some(std.clone());
+            st.covariance = res.covariance.as_ref().map(|c| {
+                (0..c.nrows())
+                    .map(|i| (0..c.ncols()).map(|j| c[(i, j)]).collect())
+                    .collect()
+            });
             st.epsilon = Some(res.epsilon());
             for (l, f) in st.filters.iter_mut().enumerate() {
                 f.observe(days, res.theta[l], std[l] * std[l]);
