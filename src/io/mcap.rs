@@ -204,9 +204,24 @@ fn owned(m: mcap::Message) -> RecordedMessage {
     }
 }
 
+/// The bytes every MCAP file starts with.
+const MAGIC: &[u8] = b"\x89MCAP0\r\n";
+
+/// Reads a whole file that must start as an MCAP file does.
+fn read_mcap_bytes(path: &Path) -> Result<Vec<u8>> {
+    let buf = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+    if !buf.starts_with(MAGIC) {
+        bail!(
+            "{} is not an MCAP file (it does not start with the MCAP magic bytes)",
+            path.display()
+        );
+    }
+    Ok(buf)
+}
+
 /// Every message of a complete MCAP file, in file order.
 pub fn read_all(path: &Path) -> Result<Vec<RecordedMessage>> {
-    let buf = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let buf = read_mcap_bytes(path)?;
     let stream = mcap::MessageStream::new(&buf)
         .with_context(|| format!("{} is not an MCAP file", path.display()))?;
     stream
@@ -219,7 +234,7 @@ pub fn read_all(path: &Path) -> Result<Vec<RecordedMessage>> {
 /// order, up to the first unreadable record; and the reason reading stopped there, if it
 /// stopped before the end.
 pub fn read_tolerant(path: &Path) -> Result<(Vec<RecordedMessage>, Option<String>)> {
-    let buf = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let buf = read_mcap_bytes(path)?;
     let stream = mcap::MessageStream::new_with_options(
         &buf,
         enumset::EnumSet::only(mcap::read::Options::IgnoreEndMagic),

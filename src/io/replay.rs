@@ -245,6 +245,13 @@ pub fn replay(
         );
     }
     let recording_bytes = std::fs::metadata(&opts.recording)?.len();
+    tracing::info!(
+        sets = sets.len(),
+        structures = names.join(","),
+        "replaying {} into {}",
+        opts.recording.display(),
+        opts.out.display()
+    );
     let mut models = HashMap::new();
     let mut channels = Vec::new();
     for s in &settings.structures {
