@@ -39,12 +39,25 @@ impl Evaluation {
 }
 
 /// Evaluates residuals and Jacobians for one model, reusing its solvers and buffers.
+///
+/// It also remembers the eigenpairs and the per-mode sensitivities of the last θ it saw:
+/// a tracker's next update starts at the θ where the last one ended, so its first eigen
+/// solve and most of its first Jacobian are already done. Both depend on θ alone (the data
+/// enter only afterwards), and the solvers are deterministic, so a remembered result is
+/// bit for bit the one a fresh evaluator would compute.
 pub struct Evaluator {
     eigen: Box<dyn EigenSolver + Send>,
     nelson: Nelson,
     dphi: Mat<f64>,
     dlambda: Vec<f64>,
+    /// θ, candidate count and eigenpairs of the last solve.
+    last_eig: Option<(Vec<f64>, usize, EigenPairs)>,
+    /// θ and, per model mode, ∂λ and ∂φ at the channels, of the last Jacobian.
+    last_sensitivities: Option<(Vec<f64>, Vec<Option<Sensitivity>>)>,
 }
+
+/// ∂λ_k (per parameter) and ∂φ_k at every channel (channels × parameters).
+type Sensitivity = (Vec<f64>, Mat<f64>);
 
 /// Number of model modes searched for pairing partners: twice the measured count, and at
 /// least ten more (the paper's Fig. 13 pairs measured mode 9 with model mode 13).
@@ -68,6 +81,8 @@ impl Evaluator {
             nelson: Nelson::new(model)?,
             dphi: Mat::zeros(model.n_dof(), model.n_params()),
             dlambda: vec![0.0; model.n_params()],
+            last_eig: None,
+            last_sensitivities: None,
         })
     }
 
@@ -79,7 +94,14 @@ impl Evaluator {
         theta: &[f64],
     ) -> Result<Evaluation, ModalError> {
         let n_cand = candidate_count(data.modes.len(), model.n_dof());
-        let eig = self.eigen.solve(model, theta, n_cand)?;
+        let eig = match &self.last_eig {
+            Some((t, n, eig)) if t == theta && *n == n_cand => eig.clone(),
+            _ => {
+                let eig = self.eigen.solve(model, theta, n_cand)?;
+                self.last_eig = Some((theta.to_vec(), n_cand, eig.clone()));
+                eig
+            }
+        };
         let channels = model.channels();
         let mut pairing = Vec::with_capacity(data.modes.len());
         let mut macs = Vec::with_capacity(data.modes.len());
@@ -150,7 +172,10 @@ impl Evaluator {
         let channels = model.channels();
         let mut jac = Mat::zeros(data.n_data(), p);
         // Sensitivities per distinct paired model mode: ∂λ (p) and ∂φ at every channel.
-        let mut cache: Vec<Option<(Vec<f64>, Mat<f64>)>> = vec![None; ev.eig.lambda.len()];
+        let mut cache: Vec<Option<Sensitivity>> = match self.last_sensitivities.take() {
+            Some((t, c)) if t == ev.theta && c.len() == ev.eig.lambda.len() => c,
+            _ => vec![None; ev.eig.lambda.len()],
+        };
         let mut phi = vec![0.0; n];
         for &k in &ev.pairing {
             if cache[k].is_some() {
@@ -176,6 +201,7 @@ impl Evaluator {
             }
             cache[k] = Some((self.dlambda.clone(), dch));
         }
+        let cache = &self.last_sensitivities.insert((ev.theta.clone(), cache)).1;
         let mut row = 0;
         let mut dp = Vec::new();
         for (m, mode) in data.modes.iter().enumerate() {
