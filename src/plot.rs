@@ -355,7 +355,7 @@ fn panel_svg(out: &mut String, p: &Panel, ox: f64, oy: f64) {
             let d: Vec<String> = upper.chain(lower).collect();
             let _ = writeln!(
                 out,
-                r#"<polygon points="{}" fill="{color}" fill-opacity="0.18" stroke="none"><title>{}</title></polygon>"#,
+                r#"<polygon points="{}" fill="{color}" fill-opacity="0.3" stroke="none"><title>{}</title></polygon>"#,
                 d.join(" "),
                 esc(&b.label)
             );

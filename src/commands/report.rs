@@ -1,9 +1,9 @@
 //! `boltwatch report OUT.mcap -o DIR`: plots of a replay's (or the daemon's) outputs, per
 //! structure: `DIR/<structure>-stiffness.svg` (each parameter's estimate per set, its
 //! filtered level with the 95 % band, the baseline, alert markers),
-//! `DIR/<structure>-frequencies.svg` (measured and model frequencies, and their
-//! difference) and `DIR/<structure>-epsilon.svg` (ε against its χ² bound, with the
-//! model-inadequacy alerts). Time in days from the first estimate.
+//! `DIR/<structure>-frequencies.svg` (measured frequencies, their change from the mean
+//! of the first 20 sets, model − measured) and `DIR/<structure>-epsilon.svg` (ε against its χ² bound,
+//! cold starts, model-inadequacy alerts). Time in days from the first estimate.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -179,11 +179,18 @@ fn report_structure(structure: &str, o: &Outputs) -> Result<Vec<(&'static str, S
         .max()
         .unwrap_or(0);
     let mut pf = Panel::new(
-        &format!("{structure}: measured (grey) and model frequencies"),
+        &format!("{structure}: measured frequencies"),
         "time, days",
         "frequency, Hz",
         Scale::Linear,
         Scale::Log,
+    );
+    let mut pc = Panel::new(
+        &format!("{structure}: measured frequency change from the first 20 sets' mean"),
+        "time, days",
+        "change, %",
+        Scale::Linear,
+        Scale::Linear,
     );
     let mut pe = Panel::new(
         &format!("{structure}: model − measured frequency"),
@@ -196,31 +203,38 @@ fn report_structure(structure: &str, o: &Outputs) -> Result<Vec<(&'static str, S
         let get =
             |k: &str| -> Vec<f64> { o.stiffness.iter().map(|e| f(&e["modes"][m][k])).collect() };
         let (meas, model) = (get("measured_hz"), get("model_hz"));
-        pf.series.push(
+        let label = format!("mode {}", m + 1);
+        // Reference: the mean of the first 20 sets (the commissioning period).
+        let early: Vec<f64> = meas
+            .iter()
+            .copied()
+            .filter(|v| v.is_finite())
+            .take(20)
+            .collect();
+        let first = early.iter().sum::<f64>() / early.len() as f64;
+        pf.series
+            .push(Series::trace(label.clone(), days.clone(), meas.clone()).with_width(0.8));
+        pc.series.push(
             Series::trace(
-                if m == 0 { "measured" } else { "" },
+                label.clone(),
                 days.clone(),
-                meas.clone(),
+                meas.iter().map(|v| 100.0 * (v / first - 1.0)).collect(),
             )
-            .with_color("#b0b0b0")
             .with_width(0.6),
-        );
-        pf.series.push(
-            Series::trace(format!("mode {}", m + 1), days.clone(), model.clone()).with_width(1.0),
         );
         pe.series.push(
             Series::trace(
-                format!("mode {}", m + 1),
+                label,
                 days.clone(),
                 meas.iter()
                     .zip(&model)
                     .map(|(a, b)| 100.0 * (b - a) / a)
                     .collect(),
             )
-            .with_width(0.8),
+            .with_width(0.6),
         );
     }
-    let frequencies = figure_svg(&[pf, pe], 1);
+    let frequencies = figure_svg(&[pf, pc, pe], 1);
     // ε.
     let mut pe = Panel::new(
         &format!("{structure}: misfit ε (5) per set"),
