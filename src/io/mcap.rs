@@ -65,9 +65,9 @@ pub fn to_ns(t: DateTime<Utc>) -> Result<u64> {
         .ok_or_else(|| anyhow!("time {t} is outside MCAP's range (1970 to 2554)"))
 }
 
-/// The time of an MCAP log time.
+/// The time of an MCAP log time (saturating at 2262, the end of chrono's nanosecond range).
 pub fn from_ns(ns: u64) -> DateTime<Utc> {
-    DateTime::from_timestamp_nanos(ns as i64)
+    DateTime::from_timestamp_nanos(i64::try_from(ns).unwrap_or(i64::MAX))
 }
 
 /// An MCAP file being written (module docs).

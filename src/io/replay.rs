@@ -336,6 +336,13 @@ pub fn replay(
                     .with_context(|| ctx(&format!("tracker of {name}")))?;
                 trackers.insert(name.clone(), t);
             }
+            if !part.exists() {
+                bail!(
+                    "{} is missing, so the outputs the checkpoint {} counts are gone: replay without --resume",
+                    part.display(),
+                    opts.checkpoint.display()
+                );
+            }
             let (kept, stop) = read_tolerant(&part)?;
             if (kept.len() as u64) < written {
                 bail!(

@@ -80,6 +80,15 @@ fn killed_replay_resumes_to_the_same_bytes() {
         resumed_at.iter().flatten().any(|&n| n > 0),
         "no checkpoint was ever written"
     );
+    // Without the unfinished output the checkpoint cannot be resumed: a clear error, and
+    // nothing is overwritten.
+    let part = d.join("out.mcap.part");
+    let saved = d.join("saved.part");
+    std::fs::rename(&part, &saved).unwrap();
+    let o = replay_cmd(&rec, &out, true).output().unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("is missing"));
+    std::fs::rename(&saved, &part).unwrap();
     let o = replay_cmd(&rec, &out, true).output().unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let stdout = String::from_utf8_lossy(&o.stdout);
