@@ -235,7 +235,7 @@ impl Scenario {
         }
         let model = Model::from_spec(spec)?;
         let mut solver = DenseEigen::new(&model)?;
-        let (mass_model, mass_day) = match &self.event {
+        let (mut mass_model, mass_day) = match &self.event {
             Event::Mass { at, mass, day } => {
                 let mut with = spec.clone();
                 with.masses.push(MassSpec {
@@ -249,7 +249,6 @@ impl Scenario {
             }
             _ => (None, f64::INFINITY),
         };
-        let mut mass_model = mass_model;
         let mut rng = ChaCha8Rng::seed_from_u64(self.seed);
         let channels: Vec<String> = model.channels().iter().map(|c| c.name.clone()).collect();
         let positive = |v: f64| (v > 0.0).then_some(v);

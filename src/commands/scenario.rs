@@ -108,13 +108,7 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
     }
     let channels = [
         ChannelSpec::for_structure(&model.name, "modal")?,
-        ChannelSpec {
-            topic: crate::io::mcap::topic(&model.name, "truth"),
-            schema: TRUTH_SCHEMA,
-            schema_text: crate::io::schemas::for_topic("truth")
-                .expect("truth schema")
-                .1,
-        },
+        ChannelSpec::for_structure(&model.name, "truth")?,
     ];
     let mut w = McapWriter::create(&args.out, &channels)?;
     let names: Vec<&str> = model.parameters().iter().map(|p| p.name.as_str()).collect();

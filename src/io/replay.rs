@@ -90,19 +90,20 @@ pub struct ReplaySummary {
 }
 
 impl ReplaySummary {
+    /// Notes a message read back from a file.
     fn note(&mut self, m: &RecordedMessage) {
-        let suffix = m.topic.rsplit('/').next().unwrap_or_default();
-        match suffix {
-            "alerts" => {
-                if let Ok(v) = serde_json::from_slice(&m.data) {
-                    self.alerts.push(v);
-                }
-            }
+        if let Ok(v) = serde_json::from_slice::<Value>(&m.data) {
+            self.note_value(&m.topic, &v);
+        }
+    }
+
+    /// Notes an output by its topic and payload.
+    fn note_value(&mut self, topic: &str, v: &Value) {
+        match topic.rsplit('/').next().unwrap_or_default() {
+            "alerts" => self.alerts.push(v.clone()),
             "stiffness" => {
-                if let Ok(v) = serde_json::from_slice::<Value>(&m.data) {
-                    let s = v["structure"].as_str().unwrap_or_default().to_string();
-                    self.last_estimate.insert(s, v);
-                }
+                let s = v["structure"].as_str().unwrap_or_default().to_string();
+                self.last_estimate.insert(s, v.clone());
             }
             "crosscheck" => self.crosschecks += 1,
             "rejected" => self.rejected += 1,
@@ -182,18 +183,9 @@ struct Output {
 
 impl Output {
     fn write(&mut self, topic: &str, log_time: u64, payload: &Value) -> Result<()> {
-        let data = serde_json::to_vec(payload)?;
-        self.w.write(topic, log_time, &data)?;
-        self.summary.note(&RecordedMessage {
-            topic: topic.to_string(),
-            schema: None,
-            schema_encoding: None,
-            message_encoding: "json".into(),
-            sequence: 0,
-            log_time,
-            publish_time: log_time,
-            data,
-        });
+        self.w
+            .write(topic, log_time, &serde_json::to_vec(payload)?)?;
+        self.summary.note_value(topic, payload);
         Ok(())
     }
 

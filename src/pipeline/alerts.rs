@@ -213,7 +213,7 @@ impl InadequacyState {
         window: u32,
         persistence: u32,
     ) -> Option<&'static str> {
-        let bound = |nu: f64| nu + 4.0 * (2.0 * nu).sqrt();
+        use crate::core::updating::chi2_bound_of_dof as bound;
         let window = window.max(1) as usize;
         self.recent.push_back((epsilon, nu));
         while self.recent.len() > window {

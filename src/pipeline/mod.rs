@@ -25,13 +25,8 @@ use crate::core::model::{Model, ParameterKind};
 use crate::core::updating::data::RawMode;
 use crate::core::updating::{
     Evaluator, MeasuredData, ModeMatching, ModeMatchingOptions, ModeMatchingResult, UpdateError,
-    chi2_bound,
+    chi2_bound, chi2_dof,
 };
-
-/// Degrees of freedom ν of ε used by [`chi2_bound`].
-fn chi2_nu(n_data: usize, n_params: usize) -> f64 {
-    n_data.saturating_sub(n_params).max(1) as f64
-}
 use alerts::{InadequacyState, LooseningState};
 pub use config::{TrackerConfig, TrackerError};
 use drift::{DriftFilter, Z95};
@@ -116,6 +111,8 @@ pub struct Tracker {
     is_connection: Vec<bool>,
     /// Nominal rotational stiffness of parameter `l` (N·m/rad), when its connections share one.
     k_nominal: Vec<Option<f64>>,
+    /// The model's channel names, in model order (for validation).
+    channel_names: Vec<String>,
 }
 
 impl Tracker {
@@ -201,6 +198,7 @@ impl Tracker {
                 _ => None,
             })
             .collect();
+        let model_channel_names = model.channels().iter().map(|c| c.name.clone()).collect();
         let mm = ModeMatching::new(Evaluator::new(&model)?);
         let opts = ModeMatchingOptions {
             tol: cfg.tolerance,
@@ -215,6 +213,7 @@ impl Tracker {
             opts,
             is_connection,
             k_nominal,
+            channel_names: model_channel_names,
         })
     }
 
@@ -242,15 +241,9 @@ impl Tracker {
     /// recording's log time, used only in rejections).
     pub fn handle(&mut self, received: DateTime<Utc>, payload: &[u8]) -> Vec<Action> {
         let structures = [self.model.name.as_str()];
-        let channels: Vec<String> = self
-            .model
-            .channels()
-            .iter()
-            .map(|c| c.name.clone())
-            .collect();
         let ctx = ValidationContext {
             structures: &structures,
-            model_channels: &channels,
+            model_channels: &self.channel_names,
             last_time: self.state.last_time,
             allow_equal_time: self.cfg.allow_equal_time,
         };
@@ -404,7 +397,7 @@ impl Tracker {
         let st = &mut self.state;
         if let Some(level) = st.inadequacy.step(
             res.epsilon(),
-            chi2_nu(data.n_data(), self.model.n_params()),
+            chi2_dof(data.n_data(), self.model.n_params()),
             self.cfg.alerts.inadequacy_window,
             self.cfg.alerts.persistence,
         ) {
