@@ -129,5 +129,74 @@ fn bench_bayesian(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, bench_update, bench_bayesian);
+/// The lab frame's eigen problem in the dense solver's reduced form: the 27 largest
+/// eigenpairs (19 pairing candidates and 8 guard modes) of a 142 × 142 symmetric matrix,
+/// by tridiagonalization and inverse iteration, against the full decomposition.
+fn bench_dense_eigen(c: &mut Criterion) {
+    boltwatch::core::sequential_numerics();
+    let n = 142;
+    let q = 27;
+    let mut s: u64 = 7;
+    let r = faer::Mat::<f64>::from_fn(n, n, |_, _| {
+        s = s
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (s >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+    });
+    let qm = r.qr().compute_Q();
+    let d = faer::Mat::<f64>::from_fn(
+        n,
+        n,
+        |i, j| if i == j { 1.1_f64.powi(i as i32) } else { 0.0 },
+    );
+    let b = &qm * &d * qm.transpose();
+    let mut partial = boltwatch::core::modal::tridiag::PartialSymEvd::new(n, q);
+    c.bench_function("dense_partial_evd_142_largest_27", |bch| {
+        bch.iter(|| partial.largest(black_box(&b), q).unwrap())
+    });
+    {
+        use faer::dyn_stack::{MemBuffer, MemStack};
+        use faer::linalg::evd::tridiag;
+        let mut mem = MemBuffer::new(tridiag::tridiag_in_place_scratch::<f64>(
+            n,
+            faer::Par::Seq,
+            Default::default(),
+        ));
+        let mut t = b.clone();
+        let mut h = faer::Mat::<f64>::zeros(32, n - 1);
+        c.bench_function("tridiag_only_142", |bch| {
+            bch.iter(|| {
+                t.copy_from(&b);
+                tridiag::tridiag_in_place(
+                    t.as_mut(),
+                    h.as_mut(),
+                    faer::Par::Seq,
+                    MemStack::new(&mut mem),
+                    Default::default(),
+                );
+            })
+        });
+        let mut h1 = faer::Mat::<f64>::zeros(1, n - 1);
+        c.bench_function("tridiag_only_142_bs1", |bch| {
+            bch.iter(|| {
+                t.copy_from(&b);
+                tridiag::tridiag_in_place(
+                    t.as_mut(),
+                    h1.as_mut(),
+                    faer::Par::Seq,
+                    MemStack::new(&mut mem),
+                    Default::default(),
+                );
+            })
+        });
+        c.bench_function("llt_142", |bch| {
+            bch.iter(|| black_box(&d).llt(faer::Side::Lower).unwrap())
+        });
+    }
+    c.bench_function("dense_full_evd_142", |bch| {
+        bch.iter(|| black_box(&b).self_adjoint_eigen(faer::Side::Lower).unwrap())
+    });
+}
+
+criterion_group!(benches, bench_update, bench_bayesian, bench_dense_eigen);
 criterion_main!(benches);

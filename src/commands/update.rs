@@ -127,6 +127,7 @@ fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
         tol: args.tol,
         max_iterations: args.max_iter.unwrap_or(200),
         take_final_step: true,
+        sigma_tol: None,
     };
     let mut mm = ModeMatching::new(Evaluator::new(model)?);
     // The paper's fixed-κ Gauss–Newton runs as published; the default is globalized.

@@ -23,6 +23,7 @@ use serde_json::{Value, json};
 use crate::contract::modal_set::{ModalSet, Rejection, ValidationContext, parse_modal_set};
 use crate::core::model::{Model, ParameterKind};
 use crate::core::updating::data::RawMode;
+use crate::core::modal::eigen::WarmBlock;
 use crate::core::updating::{
     Evaluator, MeasuredData, ModeMatching, ModeMatchingOptions, ModeMatchingResult, UpdateError,
     chi2_bound, chi2_dof,
@@ -172,7 +173,15 @@ impl Tracker {
                 state.filters.len()
             )));
         }
-        Self::with_state(model, cfg, state)
+        let block = match checkpoint.get("eigen_block") {
+            None | Some(Value::Null) => None,
+            Some(v) => Some(warm_block_from_json(v, model.n_dof(), p)?),
+        };
+        let mut tracker = Self::with_state(model, cfg, state)?;
+        if let Some(b) = block {
+            tracker.mm.evaluator.restore_warm_state(b);
+        }
+        Ok(tracker)
     }
 
     fn with_state(
@@ -199,9 +208,11 @@ impl Tracker {
             })
             .collect();
         let model_channel_names = model.channels().iter().map(|c| c.name.clone()).collect();
-        let mm = ModeMatching::new(Evaluator::new(&model)?);
+        let mut evaluator = Evaluator::new(&model)?;
+        evaluator.set_warm_start(true);
+        let mm = ModeMatching::new(evaluator);
         let opts = ModeMatchingOptions {
-            tol: cfg.tolerance,
+            sigma_tol: Some(cfg.step_tolerance),
             take_final_step: false,
             ..Default::default()
         };
@@ -234,6 +245,8 @@ impl Tracker {
         json!({
             "schema": CHECKPOINT_SCHEMA,
             "state": serde_json::to_value(&self.state).expect("state serializes"),
+            // The eigen solver's warm-start block: a resume continues bit for bit.
+            "eigen_block": self.mm.evaluator.warm_state().map(|b| warm_block_to_json(&b)),
         })
     }
 
@@ -546,6 +559,47 @@ impl Tracker {
             )
         })
     }
+}
+
+/// A [`WarmBlock`] as JSON: θ, the mode count, the Ritz values and the vectors column by
+/// column.
+fn warm_block_to_json(b: &WarmBlock) -> Value {
+    let cols: Vec<Vec<f64>> = (0..b.x.ncols())
+        .map(|j| (0..b.x.nrows()).map(|i| b.x[(i, j)]).collect())
+        .collect();
+    json!({ "theta": b.theta, "n_modes": b.n_modes, "lambda": b.lambda, "x": cols })
+}
+
+/// The inverse of [`warm_block_to_json`], checked against the model's sizes.
+fn warm_block_from_json(v: &Value, n_dof: usize, n_params: usize) -> Result<WarmBlock, TrackerError> {
+    #[derive(serde::Deserialize)]
+    struct Raw {
+        theta: Vec<f64>,
+        n_modes: usize,
+        lambda: Vec<f64>,
+        x: Vec<Vec<f64>>,
+    }
+    let bad = |why: String| TrackerError::Checkpoint(format!("eigen_block: {why}"));
+    let raw: Raw = serde_json::from_value(v.clone()).map_err(|e| bad(e.to_string()))?;
+    let q = raw.x.len();
+    if raw.theta.len() != n_params
+        || raw.lambda.len() != q
+        || raw.n_modes > q
+        || raw.x.iter().any(|c| c.len() != n_dof)
+    {
+        return Err(bad(format!(
+            "sizes (θ {}, λ {}, modes {}, vectors {q}) do not fit the model ({n_params} parameters, {n_dof} DOFs)",
+            raw.theta.len(),
+            raw.lambda.len(),
+            raw.n_modes
+        )));
+    }
+    Ok(WarmBlock {
+        theta: raw.theta,
+        n_modes: raw.n_modes,
+        lambda: raw.lambda,
+        x: faer::Mat::from_fn(n_dof, q, |i, j| raw.x[j][i]),
+    })
 }
 
 /// The updating data of a validated set: channels mapped onto the model, `null` entries

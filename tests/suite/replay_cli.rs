@@ -50,9 +50,11 @@ fn killed_replay_resumes_to_the_same_bytes() {
     let ckpt = d.join("out.mcap.checkpoint.json");
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
     // Ten kill points spread over the run: wait until the checkpoint has passed a random
-    // set, then a random further 0–250 ms (0 to about 10 sets, two checkpoint intervals),
-    // so kills fall anywhere: mid-set, mid-chunk, mid-checkpoint.
-    let mut targets: Vec<u64> = (0..10).map(|_| rng.random_range(0..280)).collect();
+    // set, then a random further delay of up to 50 sets' time (by the full run's pace, at
+    // most 250 ms), so kills fall anywhere: mid-set, mid-chunk, mid-checkpoint, and always
+    // before the last set (a checkpoint is written every 5 sets here).
+    let max_delay_ms = (full.as_millis() as u64 * 50 / 300).clamp(1, 250);
+    let mut targets: Vec<u64> = (0..10).map(|_| rng.random_range(0..240)).collect();
     targets.sort_unstable();
     let next_input = || {
         std::fs::read(&ckpt)
@@ -66,7 +68,9 @@ fn killed_replay_resumes_to_the_same_bytes() {
         while next_input().unwrap_or(0) < *target && child.try_wait().unwrap().is_none() {
             std::thread::sleep(std::time::Duration::from_millis(5));
         }
-        std::thread::sleep(std::time::Duration::from_millis(rng.random_range(0..250)));
+        std::thread::sleep(std::time::Duration::from_millis(
+            rng.random_range(0..max_delay_ms),
+        ));
         assert!(
             child.try_wait().unwrap().is_none(),
             "kill {k}: the replay ended before it (full run {full:?})"

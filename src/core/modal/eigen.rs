@@ -22,7 +22,9 @@ use faer::matrix_free::eigen::{
 use faer::{Col, Mat, Par, Side};
 
 use super::ModalError;
+use super::tridiag::PartialSymEvd;
 use crate::core::model::Model;
+use crate::core::model::sparse::sparse_times_dense;
 
 /// Modes computed beyond those asked for, so the Rayleigh–Ritz step converges the wanted
 /// ones fast (error factor λ_q / λ_{q+guard+1} per step).
@@ -55,12 +57,84 @@ pub trait EigenSolver {
         theta: &[f64],
         n_modes: usize,
     ) -> Result<EigenPairs, ModalError>;
+
+    /// Turns warm starts on or off (off by default). A solver that has none ignores it.
+    fn set_warm(&mut self, _on: bool) {}
+
+    /// A warm solve from the last solve's block, when warm starts are on, a block exists
+    /// and θ is near its θ: the pairs and each pair's relative residual
+    /// `‖Kφ − λMφ‖ / ‖Kφ‖`, the first `strict` of them below [`STRICT_RESIDUAL`] and all
+    /// below [`LOOSE_RESIDUAL`]. `None` when that does not hold (solve cold instead).
+    fn solve_warm(
+        &mut self,
+        _model: &Model,
+        _theta: &[f64],
+        _n_modes: usize,
+        _strict: usize,
+    ) -> Result<Option<(EigenPairs, Vec<f64>)>, ModalError> {
+        Ok(None)
+    }
+
+    /// The block the next warm solve starts from.
+    fn warm_block(&self) -> Option<&WarmBlock> {
+        None
+    }
+
+    /// Replaces that block (a restored checkpoint).
+    fn set_warm_block(&mut self, _block: Option<WarmBlock>) {}
 }
+
+/// Relative residual a warm-solved mode must reach when it is used for the fit. The
+/// eigenvector's error is about the residual (the slowest error component, along the first
+/// guard mode, gives a residual of its own size) and the eigenvalue's its square: 1e-7
+/// puts shapes within 1e-7 and frequencies within 1e-14 of the exact pencil, far inside
+/// any measurement's uncertainty (1 % frequency CoV, 5 % NSD).
+pub const STRICT_RESIDUAL: f64 = 1e-7;
+
+/// Relative residual every warm-solved mode must reach: enough for pairing by MAC
+/// (MAC error about the residual squared).
+pub const LOOSE_RESIDUAL: f64 = 1e-4;
+
+/// Largest change `|ln θ_i − ln θ_i,block|` for a warm start: beyond it the block is too
+/// far from the new modes to converge in a few steps.
+const WARM_MAX_LOG_CHANGE: f64 = 0.3;
+
+/// Inverse-iteration steps a warm solve may take before giving up (and solving cold).
+const WARM_MAX_STEPS: usize = 8;
 
 /// Dense solver (for models up to a few thousand DOFs).
 pub struct DenseEigen {
     m: Mat<f64>,
     k: Mat<f64>,
+    partial: PartialSymEvd,
+    /// Keep the Ritz block of each solve and start the next from it (see [`WarmBlock`]).
+    warm: bool,
+    block: Option<WarmBlock>,
+}
+
+/// The Ritz block of the last solve (the wanted modes and the guard modes), from which a
+/// warm solve at a nearby θ starts.
+#[derive(Debug, Clone, PartialEq)]
+pub struct WarmBlock {
+    pub theta: Vec<f64>,
+    /// Modes the solve was asked for (the first columns of `x`).
+    pub n_modes: usize,
+    /// Ritz values, ascending.
+    pub lambda: Vec<f64>,
+    /// Ritz vectors (n_dof × (n_modes + guard modes)), mass-normalized.
+    pub x: Mat<f64>,
+}
+
+impl WarmBlock {
+    /// The eigenpairs the solve returned: the first `n_modes`, with the sign convention.
+    pub fn pairs(&self) -> EigenPairs {
+        let mut phi = self.x.subcols(0, self.n_modes).to_owned();
+        sign_convention(&mut phi);
+        EigenPairs {
+            lambda: self.lambda[..self.n_modes].to_vec(),
+            phi,
+        }
+    }
 }
 
 impl DenseEigen {
@@ -73,6 +147,9 @@ impl DenseEigen {
         Ok(Self {
             m,
             k: Mat::zeros(n, n),
+            partial: PartialSymEvd::new(n, n),
+            warm: false,
+            block: None,
         })
     }
 }
@@ -102,50 +179,190 @@ impl EigenSolver for DenseEigen {
         l.solve_lower_triangular_in_place(c.as_mut());
         let mut b = c.transpose().to_owned();
         l.solve_lower_triangular_in_place(b.as_mut());
-        let mut phi0 = top_eigenvectors(&b, q)?;
+        let mut phi0 = top_eigenvectors(&b, q, &mut self.partial)?;
         l.transpose().solve_upper_triangular_in_place(phi0.as_mut());
 
-        // One block inverse iteration X = K⁻¹ M Φ0, columns scaled to unit M-norm. The
-        // products with M use its sparse form (a few nonzeros per row).
-        let m_sparse = model.mass();
-        let mphi0 = m_sparse * &phi0;
-        let mut x = mphi0.clone();
-        llt.solve_in_place(x.as_mut());
-        let mut kx = mphi0; // K X = M Φ0, rescaled with X below
-        let mut mx = m_sparse * &x;
-        for j in 0..q {
-            let s = 1.0 / (x.col(j).transpose() * mx.col(j)).sqrt();
-            for i in 0..n {
-                x[(i, j)] *= s;
-                kx[(i, j)] *= s;
-                mx[(i, j)] *= s;
+        let RitzStep { lambda, phi: x, .. } = inverse_iteration_step(&llt, model, &phi0)?;
+        check_positive(&lambda[..n_modes])?;
+        let block = WarmBlock {
+            theta: theta.to_vec(),
+            n_modes,
+            lambda,
+            x,
+        };
+        let pairs = block.pairs();
+        if self.warm {
+            self.block = Some(block);
+        }
+        Ok(pairs)
+    }
+
+    fn set_warm(&mut self, on: bool) {
+        self.warm = on;
+        if !on {
+            self.block = None;
+        }
+    }
+
+    fn warm_block(&self) -> Option<&WarmBlock> {
+        self.block.as_ref()
+    }
+
+    fn set_warm_block(&mut self, block: Option<WarmBlock>) {
+        self.block = block;
+    }
+
+    /// Subspace iteration from the last block: block inverse iteration and Rayleigh–Ritz
+    /// steps ([`inverse_iteration_step`]) until the residuals hold, then a Sturm count —
+    /// the inertia of `K − σM` (`LDLᵀ`, Sylvester's law) — with σ in the widest gap above
+    /// the wanted modes, so that no mode slipped past the block (Ritz values bound the
+    /// eigenvalues from above, so `k` Ritz values below σ and `k` negative pivots mean the
+    /// lowest `k` modes are all there).
+    fn solve_warm(
+        &mut self,
+        model: &Model,
+        theta: &[f64],
+        n_modes: usize,
+        strict: usize,
+    ) -> Result<Option<(EigenPairs, Vec<f64>)>, ModalError> {
+        let Some(block) = self.block.as_ref().filter(|b| {
+            self.warm
+                && b.theta.len() == theta.len()
+                && b.x.ncols() >= n_modes + GUARD_MODES.min(b.x.nrows() - n_modes)
+                && b.theta
+                    .iter()
+                    .zip(theta)
+                    .all(|(a, t)| (t / a).ln().abs() <= WARM_MAX_LOG_CHANGE)
+        }) else {
+            return Ok(None);
+        };
+        let n = model.n_dof();
+        check_mode_count(n_modes, n)?;
+        model.stiffness_dense_into(theta, self.k.as_mut());
+        let Ok(llt) = self.k.llt(Side::Lower) else {
+            return Ok(None);
+        };
+        let strict = strict.min(n_modes);
+        let mut phi = block.x.clone();
+        let mut residual = vec![f64::INFINITY; n_modes];
+        let mut done = false;
+        for _ in 0..WARM_MAX_STEPS {
+            let RitzStep {
+                lambda,
+                phi: next,
+                k_phi: kphi,
+                m_phi: mphi,
+            } = inverse_iteration_step(&llt, model, &phi)?;
+            phi = next;
+            // ρ_k = ‖Kφ − λMφ‖ / ‖Kφ‖ for the wanted modes.
+            for k in 0..n_modes {
+                let (mut num, mut den) = (0.0, 0.0);
+                for i in 0..n {
+                    num += (kphi[(i, k)] - lambda[k] * mphi[(i, k)]).powi(2);
+                    den += kphi[(i, k)].powi(2);
+                }
+                residual[k] = (num / den).sqrt();
+            }
+            if residual[..strict].iter().all(|&r| r <= STRICT_RESIDUAL)
+                && residual.iter().all(|&r| r <= LOOSE_RESIDUAL)
+            {
+                done = true;
+                let q = lambda.len();
+                // Sturm count in the widest gap among the guard modes.
+                let Some(k) = (n_modes..q).max_by(|&a, &b| {
+                    (lambda[a] / lambda[a - 1]).total_cmp(&(lambda[b] / lambda[b - 1]))
+                }) else {
+                    return Ok(None);
+                };
+                let sigma = (lambda[k - 1] * lambda[k]).sqrt();
+                let mut shifted = self.k.clone();
+                for j in 0..n {
+                    for i in 0..n {
+                        shifted[(i, j)] -= sigma * self.m[(i, j)];
+                    }
+                }
+                let Ok(ldlt) = shifted.ldlt(Side::Lower) else {
+                    return Ok(None);
+                };
+                let d = ldlt.D().column_vector();
+                let below = (0..n).filter(|&i| d[i] < 0.0).count();
+                if below != k || check_positive(&lambda[..n_modes]).is_err() {
+                    return Ok(None);
+                }
+                self.block = Some(WarmBlock {
+                    theta: theta.to_vec(),
+                    n_modes,
+                    lambda,
+                    x: phi,
+                });
+                break;
             }
         }
-        // Rayleigh–Ritz: (Xᵀ K X) a = λ (Xᵀ M X) a.
-        let mut kr = x.transpose() * &kx;
-        let mut mr = x.transpose() * &mx;
-        symmetrize(&mut kr);
-        symmetrize(&mut mr);
-        let lr = mr.llt(Side::Lower).map_err(|_| {
-            ModalError::EigenFailed("Rayleigh–Ritz mass is not positive definite".into())
-        })?;
-        let lrl = lr.L();
-        lrl.solve_lower_triangular_in_place(kr.as_mut());
-        let mut cr = kr.transpose().to_owned();
-        lrl.solve_lower_triangular_in_place(cr.as_mut());
-        symmetrize(&mut cr);
-        let evr = cr
-            .self_adjoint_eigen(Side::Lower)
-            .map_err(|e| ModalError::EigenFailed(format!("{e:?}")))?;
-        let mut a = evr.U().to_owned();
-        lrl.transpose().solve_upper_triangular_in_place(a.as_mut());
-        let s = evr.S().column_vector();
-        let lambda: Vec<f64> = (0..n_modes).map(|k| s[k]).collect();
-        check_positive(&lambda)?;
-        let mut phi = &x * a.subcols(0, n_modes);
-        sign_convention(&mut phi);
-        Ok(EigenPairs { lambda, phi })
+        if !done {
+            return Ok(None);
+        }
+        let pairs = self.block.as_ref().expect("set above").pairs();
+        Ok(Some((pairs, residual)))
     }
+}
+
+/// One block inverse iteration `X = K⁻¹ M Φ0` (columns scaled to unit M-norm) and a
+/// Rayleigh–Ritz solve `(Xᵀ K X) a = λ (Xᵀ M X) a` on its span: all Ritz values ascending
+/// and the mass-normalized Ritz vectors `X a`. `llt` factors `K(θ)`; the products with M
+/// use its sparse form (a few nonzeros per row).
+fn inverse_iteration_step(
+    llt: &Llt<f64>,
+    model: &Model,
+    phi0: &Mat<f64>,
+) -> Result<RitzStep, ModalError> {
+    let (n, q) = (phi0.nrows(), phi0.ncols());
+    let m_sparse = model.mass();
+    let mphi0 = sparse_times_dense(m_sparse, phi0.as_ref());
+    let mut x = mphi0.clone();
+    llt.solve_in_place(x.as_mut());
+    let mut kx = mphi0; // K X = M Φ0, rescaled with X below
+    let mut mx = sparse_times_dense(m_sparse, x.as_ref());
+    for j in 0..q {
+        let s = 1.0 / (x.col(j).transpose() * mx.col(j)).sqrt();
+        for i in 0..n {
+            x[(i, j)] *= s;
+            kx[(i, j)] *= s;
+            mx[(i, j)] *= s;
+        }
+    }
+    let mut kr = x.transpose() * &kx;
+    let mut mr = x.transpose() * &mx;
+    symmetrize(&mut kr);
+    symmetrize(&mut mr);
+    let lr = mr.llt(Side::Lower).map_err(|_| {
+        ModalError::EigenFailed("Rayleigh–Ritz mass is not positive definite".into())
+    })?;
+    let lrl = lr.L();
+    lrl.solve_lower_triangular_in_place(kr.as_mut());
+    let mut cr = kr.transpose().to_owned();
+    lrl.solve_lower_triangular_in_place(cr.as_mut());
+    symmetrize(&mut cr);
+    let evr = cr
+        .self_adjoint_eigen(Side::Lower)
+        .map_err(|e| ModalError::EigenFailed(format!("{e:?}")))?;
+    let mut a = evr.U().to_owned();
+    lrl.transpose().solve_upper_triangular_in_place(a.as_mut());
+    let s = evr.S().column_vector();
+    Ok(RitzStep {
+        lambda: (0..q).map(|k| s[k]).collect(),
+        phi: &x * &a,
+        k_phi: &kx * &a,
+        m_phi: &mx * &a,
+    })
+}
+
+/// Ritz values (ascending) and vectors of one [`inverse_iteration_step`], with the vectors'
+/// products with `K` and `M` (from those of the iterate, without another product).
+struct RitzStep {
+    lambda: Vec<f64>,
+    phi: Mat<f64>,
+    k_phi: Mat<f64>,
+    m_phi: Mat<f64>,
 }
 
 /// faer's Krylov–Schur subspace is at least this large.
@@ -158,7 +375,11 @@ const PARTIAL_MIN_SUBSPACE: usize = 64;
 /// 27 vectors of 142: 1.65 ms per solve with it, 2.22 ms with Krylov–Schur); its tolerance is loose because the block inverse iteration and
 /// Rayleigh–Ritz step that follow restore full accuracy. Falls back to the full
 /// decomposition if fewer than `q` pairs converge.
-fn top_eigenvectors(b: &Mat<f64>, q: usize) -> Result<Mat<f64>, ModalError> {
+fn top_eigenvectors(
+    b: &Mat<f64>,
+    q: usize,
+    partial: &mut PartialSymEvd,
+) -> Result<Mat<f64>, ModalError> {
     let n = b.nrows();
     // faer's Krylov–Schur needs its maximal subspace, max(64, 2q), smaller than n.
     if 4 * PARTIAL_MIN_SUBSPACE.max(2 * q) < n {
@@ -185,11 +406,7 @@ fn top_eigenvectors(b: &Mat<f64>, q: usize) -> Result<Mat<f64>, ModalError> {
             return Ok(Mat::from_fn(n, q, |i, j| vecs[(i, order[j])]));
         }
     }
-    let evd = b
-        .self_adjoint_eigen(Side::Lower)
-        .map_err(|e| ModalError::EigenFailed(format!("{e:?}")))?;
-    let u = evd.U();
-    Ok(Mat::from_fn(n, q, |i, j| u[(i, n - 1 - j)]))
+    Ok(partial.largest(b, q)?.1)
 }
 
 pub(crate) fn symmetrize(a: &mut Mat<f64>) {

@@ -6,6 +6,7 @@ pub mod eigen;
 pub mod krylov;
 pub mod mac;
 pub mod sensitivity;
+pub mod tridiag;
 
 pub use eigen::{DenseEigen, EigenPairs, EigenSolver};
 pub use krylov::SparseEigen;

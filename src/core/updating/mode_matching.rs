@@ -44,6 +44,11 @@ pub struct ModeMatchingOptions {
     /// current θ, which is then within `tol` of the minimum. Off in the tracker, where
     /// `tol` is well below the estimate's std and the final step costs a quarter of a set.
     pub take_final_step: bool,
+    /// Also stop when every undamped step `|Δ ln θ_i|` is below this many standard
+    /// deviations of `ln θ_i` by (15) at the current θ: the remaining change is then
+    /// negligible against the estimate's own uncertainty, whatever its relative size. For
+    /// trackers, whose estimate of every set is only known to its std.
+    pub sigma_tol: Option<f64>,
 }
 
 impl Default for ModeMatchingOptions {
@@ -53,6 +58,7 @@ impl Default for ModeMatchingOptions {
             tol: 1e-5,
             max_iterations: 200,
             take_final_step: true,
+            sigma_tol: None,
         }
     }
 }
@@ -199,7 +205,10 @@ impl ModeMatching {
                     let g = ju.transpose() * faer::ColRef::from_slice(&ev.r);
                     // Convergence test on the undamped step.
                     if let Some(gn) = solve_normal(&a, &g)
-                        && gn.iter().all(|d| d.exp_m1().abs() < opts.tol)
+                        && (gn.iter().all(|d| d.exp_m1().abs() < opts.tol)
+                            || opts
+                                .sigma_tol
+                                .is_some_and(|t| within_std(&a, &gn, t, data, &ev)))
                     {
                         if !opts.take_final_step {
                             break Termination::Converged;
@@ -399,6 +408,23 @@ fn covariance_from_jacobian(
         cov *= faer::Scale(ev.epsilon / dof);
     }
     Some(cov)
+}
+
+/// Whether every `|step_i|` is below `t` standard deviations `√(A⁻¹)_ii` of (15) (scaled
+/// by `ε/(N − N_θ)` under weighting (9), as the covariance is), for the normal matrix `A`
+/// of the same parameterization as the step.
+fn within_std(a: &Mat<f64>, step: &[f64], t: f64, data: &MeasuredData, ev: &Evaluation) -> bool {
+    let Ok(llt) = a.llt(Side::Lower) else {
+        return false;
+    };
+    let p = a.nrows();
+    let mut inv = Mat::<f64>::identity(p, p);
+    llt.solve_in_place(inv.as_mut());
+    let scale = match data.weighting {
+        Weighting::Heuristic { .. } => ev.epsilon / data.n_data().saturating_sub(p).max(1) as f64,
+        _ => 1.0,
+    };
+    (0..p).all(|i| step[i].abs() < t * (inv[(i, i)] * scale).sqrt())
 }
 
 /// Gauss–Newton step (19)–(20) with κ = 1: `−(JᵀJ)⁻¹ Jᵀ r`.

@@ -10,6 +10,7 @@
 use faer::Mat;
 
 use super::data::MeasuredData;
+use crate::core::modal::eigen::{STRICT_RESIDUAL, WarmBlock};
 use crate::core::modal::{EigenPairs, EigenSolver, ModalError, Nelson, mac, solver_for};
 use crate::core::model::Model;
 
@@ -54,6 +55,8 @@ pub struct Evaluator {
     last_eig: Option<(Vec<f64>, usize, EigenPairs)>,
     /// θ and, per model mode, ∂λ and ∂φ at the channels, of the last Jacobian.
     last_sensitivities: Option<(Vec<f64>, Vec<Option<Sensitivity>>)>,
+    /// Eigen solves start from the last solve's block ([`Evaluator::set_warm_start`]).
+    warm: bool,
 }
 
 /// ∂λ_k (per parameter) and ∂φ_k at every channel (channels × parameters).
@@ -83,7 +86,32 @@ impl Evaluator {
             dlambda: vec![0.0; model.n_params()],
             last_eig: None,
             last_sensitivities: None,
+            warm: false,
         })
+    }
+
+    /// Warm eigen solves (a tracker's): each solve starts from the Ritz block of the last
+    /// one, by subspace iteration, when the solver supports it and θ is near
+    /// ([`EigenSolver::solve_warm`]); a paired mode whose residual is above
+    /// [`STRICT_RESIDUAL`] is solved again cold. The result then depends on the previous
+    /// solve too (within those residuals), so a checkpoint keeps the block
+    /// ([`Evaluator::warm_state`]) for a resume to continue bit for bit.
+    pub fn set_warm_start(&mut self, on: bool) {
+        self.warm = on;
+        self.eigen.set_warm(on);
+    }
+
+    /// The block the next warm solve starts from (that of the last solve).
+    pub fn warm_state(&self) -> Option<WarmBlock> {
+        self.eigen.warm_block().cloned()
+    }
+
+    /// Restores [`Evaluator::warm_state`]: the next solve starts from the block, and an
+    /// evaluation at its θ returns its pairs, as in the run that wrote it.
+    pub fn restore_warm_state(&mut self, block: WarmBlock) {
+        self.last_eig = Some((block.theta.clone(), block.n_modes, block.pairs()));
+        self.last_sensitivities = None;
+        self.eigen.set_warm_block(Some(block));
     }
 
     /// The residual at θ with pairing (29) redone.
@@ -94,70 +122,38 @@ impl Evaluator {
         theta: &[f64],
     ) -> Result<Evaluation, ModalError> {
         let n_cand = candidate_count(data.modes.len(), model.n_dof());
-        let eig = match &self.last_eig {
-            Some((t, n, eig)) if t == theta && *n == n_cand => eig.clone(),
-            _ => {
+        if let Some((t, n, eig)) = &self.last_eig
+            && t == theta
+            && *n == n_cand
+        {
+            return Ok(residual_at(model, data, theta, eig.clone(), n_cand));
+        }
+        // Modes that must be exact in a warm solve: as many as there are measured modes
+        // (they usually pair with the lowest); any other mode that gets paired is checked
+        // below.
+        let strict = data.modes.len().min(n_cand);
+        let warm = if self.warm {
+            self.eigen.solve_warm(model, theta, n_cand, strict)?
+        } else {
+            None
+        };
+        let ev = match warm {
+            Some((eig, residual)) => {
+                let ev = residual_at(model, data, theta, eig, n_cand);
+                if ev.pairing.iter().all(|&k| residual[k] <= STRICT_RESIDUAL) {
+                    ev
+                } else {
+                    let eig = self.eigen.solve(model, theta, n_cand)?;
+                    residual_at(model, data, theta, eig, n_cand)
+                }
+            }
+            None => {
                 let eig = self.eigen.solve(model, theta, n_cand)?;
-                self.last_eig = Some((theta.to_vec(), n_cand, eig.clone()));
-                eig
+                residual_at(model, data, theta, eig, n_cand)
             }
         };
-        let channels = model.channels();
-        let mut pairing = Vec::with_capacity(data.modes.len());
-        let mut macs = Vec::with_capacity(data.modes.len());
-        let mut scales = Vec::with_capacity(data.modes.len());
-        let mut r = Vec::with_capacity(data.n_data());
-        let mut dphi_k = Vec::new();
-        for mode in &data.modes {
-            let (k, mac_k) = match &mode.shape {
-                Some(s) => {
-                    let mut best = (0, f64::NEG_INFINITY);
-                    for k in 0..n_cand {
-                        read_channels(&eig, k, &s.channels, channels, &mut dphi_k);
-                        let v = mac(&s.values, &dphi_k);
-                        if v > best.1 {
-                            best = (k, v);
-                        }
-                    }
-                    best
-                }
-                // Frequency only: the nearest model eigenvalue.
-                None => {
-                    let k = (0..n_cand)
-                        .min_by(|&a, &b| {
-                            (eig.lambda[a] - mode.lambda)
-                                .abs()
-                                .total_cmp(&(eig.lambda[b] - mode.lambda).abs())
-                        })
-                        .unwrap_or(0);
-                    (k, f64::NAN)
-                }
-            };
-            pairing.push(k);
-            macs.push(mac_k);
-            r.push((mode.lambda - eig.lambda[k]) / mode.sigma_lambda);
-            match &mode.shape {
-                Some(s) => {
-                    read_channels(&eig, k, &s.channels, channels, &mut dphi_k);
-                    let c = scale_factor(&s.values, &dphi_k);
-                    scales.push(c);
-                    for ((psi, dp), sd) in s.values.iter().zip(&dphi_k).zip(&s.sigma) {
-                        r.push((psi - c * dp) / sd);
-                    }
-                }
-                None => scales.push(f64::NAN),
-            }
-        }
-        let epsilon = r.iter().map(|v| v * v).sum();
-        Ok(Evaluation {
-            theta: theta.to_vec(),
-            eig,
-            pairing,
-            mac: macs,
-            scale: scales,
-            r,
-            epsilon,
-        })
+        self.last_eig = Some((theta.to_vec(), n_cand, ev.eig.clone()));
+        Ok(ev)
     }
 
     /// `J = ∂r/∂θ` (N × N_θ) at the evaluation's θ and pairing: `−W^{1/2} S`.
@@ -235,6 +231,73 @@ impl Evaluator {
             }
         }
         Ok(jac)
+    }
+}
+
+/// The residual (6) at θ from the eigenpairs there, with pairing (29) among the first
+/// `n_cand` modes.
+fn residual_at(
+    model: &Model,
+    data: &MeasuredData,
+    theta: &[f64],
+    eig: EigenPairs,
+    n_cand: usize,
+) -> Evaluation {
+    let channels = model.channels();
+    let mut pairing = Vec::with_capacity(data.modes.len());
+    let mut macs = Vec::with_capacity(data.modes.len());
+    let mut scales = Vec::with_capacity(data.modes.len());
+    let mut r = Vec::with_capacity(data.n_data());
+    let mut dphi_k = Vec::new();
+    for mode in &data.modes {
+        let (k, mac_k) = match &mode.shape {
+            Some(s) => {
+                let mut best = (0, f64::NEG_INFINITY);
+                for k in 0..n_cand {
+                    read_channels(&eig, k, &s.channels, channels, &mut dphi_k);
+                    let v = mac(&s.values, &dphi_k);
+                    if v > best.1 {
+                        best = (k, v);
+                    }
+                }
+                best
+            }
+            // Frequency only: the nearest model eigenvalue.
+            None => {
+                let k = (0..n_cand)
+                    .min_by(|&a, &b| {
+                        (eig.lambda[a] - mode.lambda)
+                            .abs()
+                            .total_cmp(&(eig.lambda[b] - mode.lambda).abs())
+                    })
+                    .unwrap_or(0);
+                (k, f64::NAN)
+            }
+        };
+        pairing.push(k);
+        macs.push(mac_k);
+        r.push((mode.lambda - eig.lambda[k]) / mode.sigma_lambda);
+        match &mode.shape {
+            Some(s) => {
+                read_channels(&eig, k, &s.channels, channels, &mut dphi_k);
+                let c = scale_factor(&s.values, &dphi_k);
+                scales.push(c);
+                for ((psi, dp), sd) in s.values.iter().zip(&dphi_k).zip(&s.sigma) {
+                    r.push((psi - c * dp) / sd);
+                }
+            }
+            None => scales.push(f64::NAN),
+        }
+    }
+    let epsilon = r.iter().map(|v| v * v).sum();
+    Evaluation {
+        theta: theta.to_vec(),
+        eig,
+        pairing,
+        mac: macs,
+        scale: scales,
+        r,
+        epsilon,
     }
 }
 
