@@ -21,9 +21,9 @@ use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
 use crate::contract::modal_set::{ModalSet, Rejection, ValidationContext, parse_modal_set};
+use crate::core::modal::eigen::WarmBlock;
 use crate::core::model::{Model, ParameterKind};
 use crate::core::updating::data::RawMode;
-use crate::core::modal::eigen::WarmBlock;
 use crate::core::updating::{
     Evaluator, MeasuredData, ModeMatching, ModeMatchingOptions, ModeMatchingResult, UpdateError,
     chi2_bound, chi2_dof,
@@ -571,7 +571,11 @@ fn warm_block_to_json(b: &WarmBlock) -> Value {
 }
 
 /// The inverse of [`warm_block_to_json`], checked against the model's sizes.
-fn warm_block_from_json(v: &Value, n_dof: usize, n_params: usize) -> Result<WarmBlock, TrackerError> {
+fn warm_block_from_json(
+    v: &Value,
+    n_dof: usize,
+    n_params: usize,
+) -> Result<WarmBlock, TrackerError> {
     #[derive(serde::Deserialize)]
     struct Raw {
         theta: Vec<f64>,

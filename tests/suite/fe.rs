@@ -255,3 +255,127 @@ fn sparse_solver_agrees_with_dense() {
         }
     }
 }
+
+/// Largest |φ_a − φ_b| over the entries, per column, after aligning signs.
+fn max_shape_difference(a: &Mat<f64>, b: &Mat<f64>) -> f64 {
+    let mut worst: f64 = 0.0;
+    for k in 0..a.ncols() {
+        let dot: f64 = (0..a.nrows()).map(|i| a[(i, k)] * b[(i, k)]).sum();
+        let s = if dot < 0.0 { -1.0 } else { 1.0 };
+        let scale = (0..a.nrows()).map(|i| a[(i, k)].abs()).fold(0.0, f64::max);
+        for i in 0..a.nrows() {
+            worst = worst.max((a[(i, k)] - s * b[(i, k)]).abs() / scale);
+        }
+    }
+    worst
+}
+
+/// The tracker's warm solve (subspace iteration from the last Ritz block) against a cold
+/// solve by a fresh solver, on the lab frame, 19 modes, after θ moved by up to ±25 % per
+/// parameter. The eigenvalue error is about the residual squared and the shape error about
+/// the residual (the gap to the guard modes in between): the 9 strict modes (residual
+/// below 1e-7) within 1e-12 in λ and 1e-6 of their largest entry in shape, the other
+/// candidates (below 1e-3) within 1e-6 and 1e-2.
+#[test]
+fn warm_eigen_solve_matches_a_cold_one() {
+    use boltwatch::core::modal::eigen::{LOOSE_RESIDUAL, STRICT_RESIDUAL};
+    let model = load_model("lab-frame");
+    let n_modes = 19;
+    let theta_a = model.nominal_theta();
+    let mut warm = DenseEigen::new(&model).unwrap();
+    warm.set_warm(true);
+    // No block yet: no warm solve.
+    assert!(
+        warm.solve_warm(&model, &theta_a, n_modes, 9)
+            .unwrap()
+            .is_none()
+    );
+    warm.solve(&model, &theta_a, n_modes).unwrap();
+    for (case, factor) in [1.02, 1.1, 0.8, 1.25].into_iter().enumerate() {
+        let theta_b: Vec<f64> = theta_a
+            .iter()
+            .enumerate()
+            .map(|(l, t)| {
+                if l % 2 == case % 2 {
+                    t * factor
+                } else {
+                    t / factor.sqrt()
+                }
+            })
+            .collect();
+        let (pairs, residual) = warm
+            .solve_warm(&model, &theta_b, n_modes, 9)
+            .unwrap()
+            .unwrap_or_else(|| panic!("case {case}: warm solve gave up"));
+        let cold = DenseEigen::new(&model)
+            .unwrap()
+            .solve(&model, &theta_b, n_modes)
+            .unwrap();
+        for (k, &res) in residual.iter().enumerate() {
+            let rel = (pairs.lambda[k] - cold.lambda[k]).abs() / cold.lambda[k];
+            let tol = if k < 9 { 1e-12 } else { 1e-6 };
+            assert!(rel < tol, "case {case}, mode {}: λ off by {rel:e}", k + 1);
+            let limit = if k < 9 {
+                STRICT_RESIDUAL
+            } else {
+                LOOSE_RESIDUAL
+            };
+            assert!(res <= limit, "case {case}, mode {}", k + 1);
+        }
+        let strict = max_shape_difference(
+            &pairs.phi.subcols(0, 9).to_owned(),
+            &cold.phi.subcols(0, 9).to_owned(),
+        );
+        assert!(
+            strict < 1e-6,
+            "case {case}: strict shapes off by {strict:e}"
+        );
+        let loose = max_shape_difference(&pairs.phi, &cold.phi);
+        assert!(
+            loose < 1e-2,
+            "case {case}: candidate shapes off by {loose:e}"
+        );
+        // The next warm solve starts from this one: return to θa for the next case.
+        warm.solve(&model, &theta_a, n_modes).unwrap();
+    }
+    // Too far (θ halved: |Δ ln θ| = 0.69 > 0.3): cold instead.
+    let far: Vec<f64> = theta_a.iter().map(|t| t * 0.5).collect();
+    assert!(warm.solve_warm(&model, &far, n_modes, 9).unwrap().is_none());
+}
+
+/// A block that lacks a wanted mode must never yield wrong pairs: the warm solve either
+/// recovers the mode (inverse iteration amplifies its rounding-level component) or gives
+/// up (residuals or the Sturm count), and what it returns equals the cold solve.
+#[test]
+fn warm_eigen_solve_never_skips_a_mode() {
+    use boltwatch::core::modal::eigen::WarmBlock;
+    let model = load_model("lab-frame");
+    let n_modes = 19;
+    let theta = model.nominal_theta();
+    let mut solver = DenseEigen::new(&model).unwrap();
+    solver.set_warm(true);
+    let cold = solver.solve(&model, &theta, n_modes).unwrap();
+    let block = solver.warm_block().unwrap().clone();
+    for drop in [2, 8, 18] {
+        let keep: Vec<usize> = (0..block.x.ncols()).filter(|&j| j != drop).collect();
+        let holed = WarmBlock {
+            theta: block.theta.clone(),
+            n_modes,
+            lambda: keep.iter().map(|&j| block.lambda[j]).collect(),
+            x: Mat::from_fn(block.x.nrows(), keep.len(), |i, j| block.x[(i, keep[j])]),
+        };
+        solver.set_warm_block(Some(holed));
+        let got = solver.solve_warm(&model, &theta, n_modes, 9).unwrap();
+        if let Some((pairs, _)) = got {
+            for k in 0..n_modes {
+                let rel = (pairs.lambda[k] - cold.lambda[k]).abs() / cold.lambda[k];
+                assert!(
+                    rel < 1e-10,
+                    "mode {} dropped: λ_{} off by {rel:e}",
+                    drop + 1,
+                    k + 1
+                );
+            }
+        }
+    }
+}

@@ -45,7 +45,8 @@ impl Evaluation {
 /// a tracker's next update starts at the θ where the last one ended, so its first eigen
 /// solve and most of its first Jacobian are already done. Both depend on θ alone (the data
 /// enter only afterwards), and the solvers are deterministic, so a remembered result is
-/// bit for bit the one a fresh evaluator would compute.
+/// bit for bit the one a fresh evaluator would compute (with warm starts off; with them on,
+/// the one the last solve gave, see [`Evaluator::set_warm_start`]).
 pub struct Evaluator {
     eigen: Box<dyn EigenSolver + Send>,
     nelson: Nelson,
