@@ -274,8 +274,10 @@ fn max_shape_difference(a: &Mat<f64>, b: &Mat<f64>) -> f64 {
 /// solve by a fresh solver, on the lab frame, 19 modes, after θ moved by up to ±25 % per
 /// parameter. The eigenvalue error is about the residual squared and the shape error about
 /// the residual (the gap to the guard modes in between): the 9 strict modes (residual
-/// below 1e-7) within 1e-12 in λ and 1e-6 of their largest entry in shape, the other
-/// candidates (below 1e-3) within 1e-6 and 1e-2.
+/// below 1e-7) within 1e-6 of their largest entry in shape and within 1e-10 in λ, which is
+/// the floor of the cold solver itself (on the first mode its λ and its own Rayleigh
+/// quotient φᵀKφ differ by 3e-11: K's stiff rotational entries cancel); the other
+/// candidates (below 1e-3) within 1e-2 in shape and 1e-6 in λ.
 #[test]
 fn warm_eigen_solve_matches_a_cold_one() {
     use boltwatch::core::modal::eigen::{LOOSE_RESIDUAL, STRICT_RESIDUAL};
@@ -313,7 +315,7 @@ fn warm_eigen_solve_matches_a_cold_one() {
             .unwrap();
         for (k, &res) in residual.iter().enumerate() {
             let rel = (pairs.lambda[k] - cold.lambda[k]).abs() / cold.lambda[k];
-            let tol = if k < 9 { 1e-12 } else { 1e-6 };
+            let tol = if k < 9 { 1e-10 } else { 1e-6 };
             assert!(rel < tol, "case {case}, mode {}: λ off by {rel:e}", k + 1);
             let limit = if k < 9 {
                 STRICT_RESIDUAL

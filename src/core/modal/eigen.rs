@@ -20,7 +20,9 @@ use faer::linalg::solvers::{Llt, Solve};
 use faer::matrix_free::eigen::{
     PartialEigenParams, partial_self_adjoint_eigen, partial_self_adjoint_eigen_scratch,
 };
-use faer::{Col, Mat, Par, Side};
+use faer::sparse::SparseColMatRef;
+use faer::sparse::linalg::solvers::{Llt as SparseLlt, SymbolicLlt};
+use faer::{Col, Mat, MatMut, Par, Side};
 
 use super::ModalError;
 use super::tridiag::PartialSymEvd;
@@ -113,6 +115,10 @@ pub struct DenseEigen {
     block: Option<WarmBlock>,
     /// `K − σM` of the Sturm count, factorized in place.
     shifted: Mat<f64>,
+    /// Sparse `K(θ)` on the model's union pattern and its symbolic Cholesky factorization
+    /// (warm solves: a few nonzeros per row make the solves several times cheaper).
+    k_values: Vec<f64>,
+    k_symbolic: SymbolicLlt<usize>,
     ldlt_mem: MemBuffer,
 }
 
@@ -155,6 +161,9 @@ impl DenseEigen {
             warm: false,
             block: None,
             shifted: Mat::zeros(n, n),
+            k_values: vec![0.0; model.union_pattern().pattern.val().len()],
+            k_symbolic: SymbolicLlt::try_new(model.union_pattern().pattern.symbolic(), Side::Lower)
+                .map_err(|e| ModalError::Factorization(format!("{e:?}")))?,
             ldlt_mem: MemBuffer::new(ldlt_factor::cholesky_in_place_scratch::<f64>(
                 n,
                 Par::Seq,
@@ -192,7 +201,9 @@ impl EigenSolver for DenseEigen {
         let mut phi0 = top_eigenvectors(&b, q, &mut self.partial)?;
         l.transpose().solve_upper_triangular_in_place(phi0.as_mut());
 
-        let RitzStep { lambda, phi: x, .. } = inverse_iteration_step(&llt, model, &phi0)?;
+        let mphi0 = sparse_times_dense(model.mass(), phi0.as_ref());
+        let mut solve = |b: MatMut<'_, f64>| llt.solve_in_place(b);
+        let RitzStep { lambda, phi: x, .. } = inverse_iteration_step(&mut solve, model, mphi0, 0)?;
         check_positive(&lambda[..n_modes])?;
         let block = WarmBlock {
             theta: theta.to_vec(),
@@ -248,12 +259,18 @@ impl EigenSolver for DenseEigen {
         };
         let n = model.n_dof();
         check_mode_count(n_modes, n)?;
-        model.stiffness_dense_into(theta, self.k.as_mut());
-        let Ok(llt) = self.k.llt(Side::Lower) else {
+        model.shifted_stiffness_values(theta, 0.0, &mut self.k_values);
+        let k_sparse =
+            SparseColMatRef::new(model.union_pattern().pattern.symbolic(), &self.k_values);
+        let Ok(llt) =
+            SparseLlt::try_new_with_symbolic(self.k_symbolic.clone(), k_sparse, Side::Lower)
+        else {
             return Ok(None);
         };
+        let mut solve = |b: MatMut<'_, f64>| llt.solve_in_place(b);
         let strict = strict.min(n_modes);
         let mut phi = block.x.clone();
+        let mut mphi = sparse_times_dense(model.mass(), phi.as_ref());
         let mut residual = vec![f64::INFINITY; n_modes];
         let mut done = false;
         for _ in 0..WARM_MAX_STEPS {
@@ -261,9 +278,10 @@ impl EigenSolver for DenseEigen {
                 lambda,
                 phi: next,
                 k_phi: kphi,
-                m_phi: mphi,
-            } = inverse_iteration_step(&llt, model, &phi)?;
+                m_phi: next_mphi,
+            } = inverse_iteration_step(&mut solve, model, mphi, n_modes)?;
             phi = next;
+            mphi = next_mphi;
             // ρ_k = ‖Kφ − λMφ‖ / ‖Kφ‖ for the wanted modes.
             for k in 0..n_modes {
                 let (mut num, mut den) = (0.0, 0.0);
@@ -285,7 +303,7 @@ impl EigenSolver for DenseEigen {
                     return Ok(None);
                 };
                 let sigma = (lambda[k - 1] * lambda[k]).sqrt();
-                let Some(below) = self.count_below(model, sigma) else {
+                let Some(below) = self.count_below(model, theta, sigma) else {
                     return Ok(None);
                 };
                 if below != k || check_positive(&lambda[..n_modes]).is_err() {
@@ -310,10 +328,10 @@ impl EigenSolver for DenseEigen {
 
 impl DenseEigen {
     /// The number of eigenvalues below σ: the negative pivots of `K − σM = LDLᵀ` (Sylvester's
-    /// law of inertia), `K` being the one last built into `self.k`. `None` if the
+    /// law of inertia). `None` if the
     /// unpivoted factorization meets a zero pivot (σ on an eigenvalue).
-    fn count_below(&mut self, model: &Model, sigma: f64) -> Option<usize> {
-        self.shifted.copy_from(&self.k);
+    fn count_below(&mut self, model: &Model, theta: &[f64], sigma: f64) -> Option<usize> {
+        model.stiffness_dense_into(theta, self.shifted.as_mut());
         let m = model.mass();
         let sym = m.symbolic();
         for j in 0..m.ncols() {
@@ -336,20 +354,20 @@ impl DenseEigen {
 
 /// One block inverse iteration `X = K⁻¹ M Φ0` (columns scaled to unit M-norm) and a
 /// Rayleigh–Ritz solve `(Xᵀ K X) a = λ (Xᵀ M X) a` on its span: all Ritz values ascending
-/// and the mass-normalized Ritz vectors `X a`. `llt` factors `K(θ)`; the products with M
-/// use its sparse form (a few nonzeros per row).
+/// and the mass-normalized Ritz vectors `X a`, with `M X a` for all of them (the next
+/// step's `M Φ0`) and `K X a` for the first `n_k` (residuals). `solve` applies `K⁻¹` in
+/// place; `mphi0` is `M Φ0`. The products with M use its sparse form.
 fn inverse_iteration_step(
-    llt: &Llt<f64>,
+    solve: &mut dyn FnMut(MatMut<'_, f64>),
     model: &Model,
-    phi0: &Mat<f64>,
+    mphi0: Mat<f64>,
+    n_k: usize,
 ) -> Result<RitzStep, ModalError> {
-    let (n, q) = (phi0.nrows(), phi0.ncols());
-    let m_sparse = model.mass();
-    let mphi0 = sparse_times_dense(m_sparse, phi0.as_ref());
+    let (n, q) = (mphi0.nrows(), mphi0.ncols());
     let mut x = mphi0.clone();
-    llt.solve_in_place(x.as_mut());
+    solve(x.as_mut());
     let mut kx = mphi0; // K X = M Φ0, rescaled with X below
-    let mut mx = sparse_times_dense(m_sparse, x.as_ref());
+    let mut mx = sparse_times_dense(model.mass(), x.as_ref());
     for j in 0..q {
         let s = 1.0 / (x.col(j).transpose() * mx.col(j)).sqrt();
         for i in 0..n {
@@ -379,13 +397,14 @@ fn inverse_iteration_step(
     Ok(RitzStep {
         lambda: (0..q).map(|k| s[k]).collect(),
         phi: &x * &a,
-        k_phi: &kx * &a,
+        k_phi: &kx * a.subcols(0, n_k.min(q)),
         m_phi: &mx * &a,
     })
 }
 
 /// Ritz values (ascending) and vectors of one [`inverse_iteration_step`], with the vectors'
-/// products with `K` and `M` (from those of the iterate, without another product).
+/// products with `M` and (the first few) with `K`, from those of the iterate without
+/// another product.
 struct RitzStep {
     lambda: Vec<f64>,
     phi: Mat<f64>,
@@ -500,15 +519,17 @@ mod tests {
         let theta = model.nominal_theta();
         let mut solver = DenseEigen::new(&model).unwrap();
         let pairs = solver.solve(&model, &theta, 30).unwrap();
-        model.stiffness_dense_into(&theta, solver.k.as_mut());
         for k in [1, 5, 9, 19, 27, 29] {
             let sigma = (pairs.lambda[k - 1] * pairs.lambda[k]).sqrt();
             assert_eq!(
-                solver.count_below(&model, sigma),
+                solver.count_below(&model, &theta, sigma),
                 Some(k),
                 "σ above mode {k}"
             );
         }
-        assert_eq!(solver.count_below(&model, 0.5 * pairs.lambda[0]), Some(0));
+        assert_eq!(
+            solver.count_below(&model, &theta, 0.5 * pairs.lambda[0]),
+            Some(0)
+        );
     }
 }

@@ -63,11 +63,16 @@ pub fn spmv_add(a: &Csc, x: &[f64], alpha: f64, y: &mut [f64]) {
 /// `A X` for a sparse `A` and a dense `X` (a plain column loop: for the few-hundred-DOF
 /// models of the dense solver it is several times faster than the general kernel).
 pub fn sparse_times_dense(a: &Csc, x: faer::MatRef<'_, f64>) -> faer::Mat<f64> {
-    let mut out = faer::Mat::zeros(a.nrows(), x.ncols());
+    let (n, q) = (a.nrows(), x.ncols());
+    let mut out = faer::Mat::zeros(n, q);
     let sym = a.symbolic();
-    for j in 0..x.ncols() {
-        let xj = x.col(j);
-        let mut oj = out.col_mut(j);
+    for j in 0..q {
+        let xj: Vec<f64> = x.col(j).iter().copied().collect();
+        let oj = out
+            .col_mut(j)
+            .try_as_col_major_mut()
+            .expect("owned matrix columns are contiguous")
+            .as_slice_mut();
         for c in 0..a.ncols() {
             let xc = xj[c];
             if xc != 0.0 {
