@@ -9,8 +9,8 @@ use super::{load_model, parse_theta, write_json};
 use crate::contract::modal_set::{ModalSet, ValidationContext, parse_modal_set};
 use crate::core::model::Model;
 use crate::core::updating::{
-    Evaluator, MeasuredData, ModeMatching, ModeMatchingOptions, StartPath, StepControl, Weighting,
-    chi2_bound,
+    Evaluator, FinalStep, MeasuredData, ModeMatching, ModeMatchingOptions, StartPath, StepControl,
+    Weighting, chi2_bound,
 };
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -126,7 +126,7 @@ fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
             .map_or(StepControl::LevenbergMarquardt, StepControl::FixedKappa),
         tol: args.tol,
         max_iterations: args.max_iter.unwrap_or(200),
-        take_final_step: true,
+        final_step: FinalStep::Evaluate,
         sigma_tol: None,
     };
     let mut mm = ModeMatching::new(Evaluator::new(model)?);

@@ -25,8 +25,8 @@ use crate::core::modal::eigen::WarmBlock;
 use crate::core::model::{Model, ParameterKind};
 use crate::core::updating::data::RawMode;
 use crate::core::updating::{
-    Evaluator, MeasuredData, ModeMatching, ModeMatchingOptions, ModeMatchingResult, UpdateError,
-    chi2_bound, chi2_dof,
+    Evaluator, FinalStep, MeasuredData, ModeMatching, ModeMatchingOptions, ModeMatchingResult,
+    UpdateError, chi2_bound, chi2_dof,
 };
 use alerts::{InadequacyState, LooseningState};
 pub use config::{TrackerConfig, TrackerError};
@@ -80,8 +80,13 @@ pub struct TrackerState {
     pub last_time: Option<DateTime<Utc>>,
     /// Time origin of the drift filters (the first accepted set).
     pub origin: Option<DateTime<Utc>>,
-    /// θ and its std after the last converged update (the warm start).
+    /// θ and its std after the last converged update.
     pub theta: Option<Vec<f64>>,
+    /// Where that update last evaluated the model (its last Gauss–Newton step is taken
+    /// without a further eigen solve): the next update starts there, where the eigenpairs
+    /// and sensitivities are at hand.
+    #[serde(default)]
+    pub linearized_at: Option<Vec<f64>>,
     pub std: Option<Vec<f64>>,
     /// Covariance (15) of that θ, row by row.
     #[serde(default)]
@@ -126,6 +131,7 @@ impl Tracker {
             last_time: None,
             origin: None,
             theta: None,
+            linearized_at: None,
             std: None,
             covariance: None,
             epsilon: None,
@@ -213,7 +219,7 @@ impl Tracker {
         let mm = ModeMatching::new(evaluator);
         let opts = ModeMatchingOptions {
             sigma_tol: Some(cfg.step_tolerance),
-            take_final_step: false,
+            final_step: FinalStep::Extrapolate,
             ..Default::default()
         };
         Ok(Self {
@@ -327,6 +333,7 @@ impl Tracker {
         let bound = chi2_bound(data.n_data(), self.model.n_params());
         if converged {
             st.theta = Some(res.theta.clone());
+            st.linearized_at = Some(res.last.theta.clone());
             st.std = Some(std.clone());
             st.covariance = res.covariance.as_ref().map(|c| {
                 (0..c.nrows())
@@ -505,7 +512,12 @@ impl Tracker {
             .baseline
             .clone()
             .unwrap_or_else(|| self.model.nominal_theta());
-        let Some(theta) = self.state.theta.clone() else {
+        let Some(theta) = self
+            .state
+            .linearized_at
+            .clone()
+            .or_else(|| self.state.theta.clone())
+        else {
             let (r, _) = self
                 .mm
                 .run_global(&self.model, data, &cold_theta, &self.opts)?;

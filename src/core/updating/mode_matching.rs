@@ -39,11 +39,9 @@ pub struct ModeMatchingOptions {
     /// Stop when every |Δθ_i|/θ_i is below this (paper: 1e-5).
     pub tol: f64,
     pub max_iterations: usize,
-    /// Levenberg–Marquardt: when the undamped step is below `tol`, take it (one more
-    /// eigen solve, and a Jacobian at the new θ for (15)) rather than stopping at the
-    /// current θ, which is then within `tol` of the minimum. Off in the tracker, where
-    /// `tol` is well below the estimate's std and the final step costs a quarter of a set.
-    pub take_final_step: bool,
+    /// Levenberg–Marquardt: what to do with the undamped step that passed the stopping
+    /// test.
+    pub final_step: FinalStep,
     /// Also stop when every undamped step `|Δ ln θ_i|` is below this many standard
     /// deviations of `ln θ_i` by (15) at the current θ: the remaining change is then
     /// negligible against the estimate's own uncertainty, whatever its relative size. For
@@ -57,10 +55,26 @@ impl Default for ModeMatchingOptions {
             step: StepControl::LevenbergMarquardt,
             tol: 1e-5,
             max_iterations: 200,
-            take_final_step: true,
+            final_step: FinalStep::Evaluate,
             sigma_tol: None,
         }
     }
+}
+
+/// The last (converged) Levenberg–Marquardt step.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FinalStep {
+    /// Take it and evaluate there (one more eigen solve, and a Jacobian at the new θ for
+    /// (15)); the step is kept only if ε does not rise. The default.
+    Evaluate,
+    /// Stop at the current θ, which is within the tolerance of the minimum.
+    Stop,
+    /// Take it without evaluating: the result's θ is the Gauss–Newton point
+    /// `θ · exp(Δ ln θ)`, while its `last` evaluation, ε and covariance (15) stay at the θ
+    /// the step was computed from. The error left is the iteration's contraction times the
+    /// step (on the lab frame about a tenth of it). For trackers, whose steps are bounded
+    /// by [`ModeMatchingOptions::sigma_tol`].
+    Extrapolate,
 }
 
 /// Why the iteration stopped.
@@ -86,6 +100,8 @@ pub struct IterationRecord {
 /// Outcome of a mode-matching update.
 #[derive(Debug, Clone)]
 pub struct ModeMatchingResult {
+    /// The estimate: `last.theta`, or the Gauss–Newton point beyond it
+    /// ([`FinalStep::Extrapolate`]).
     pub theta: Vec<f64>,
     /// Covariance (15) (scaled by ε/(N−N_θ) under weighting (9)); `None` if SᵀWS is singular.
     pub covariance: Option<Mat<f64>>,
@@ -163,6 +179,8 @@ impl ModeMatching {
         let mut nu = 2.0;
         // The Jacobian of the last iteration, reused for (15) if θ did not move after it.
         let mut last_jac: Option<(Vec<f64>, Mat<f64>)> = None;
+        // The Gauss–Newton point of FinalStep::Extrapolate.
+        let mut extrapolated: Option<Vec<f64>> = None;
         let termination = loop {
             if iterations >= opts.max_iterations {
                 break Termination::MaxIterations;
@@ -210,10 +228,15 @@ impl ModeMatching {
                                 .sigma_tol
                                 .is_some_and(|t| within_std(&a, &gn, t, data, &ev)))
                     {
-                        if !opts.take_final_step {
-                            break Termination::Converged;
-                        }
                         let new: Vec<f64> = (0..p).map(|i| theta[i] * gn[i].exp()).collect();
+                        match opts.final_step {
+                            FinalStep::Stop => break Termination::Converged,
+                            FinalStep::Extrapolate => {
+                                extrapolated = Some(new);
+                                break Termination::Converged;
+                            }
+                            FinalStep::Evaluate => {}
+                        }
                         let trial = self.evaluator.evaluate(model, data, &new)?;
                         evaluations += 1;
                         if trial.epsilon <= ev.epsilon * (1.0 + 1e-12) {
@@ -281,7 +304,7 @@ impl ModeMatching {
             _ => self.covariance(model, data, &ev)?,
         };
         Ok(ModeMatchingResult {
-            theta: ev.theta.clone(),
+            theta: extrapolated.unwrap_or_else(|| ev.theta.clone()),
             covariance,
             termination,
             iterations,
