@@ -73,8 +73,7 @@ pub fn sparse_times_dense(a: &Csc, x: faer::MatRef<'_, f64>) -> faer::Mat<f64> {
             .try_as_col_major_mut()
             .expect("owned matrix columns are contiguous")
             .as_slice_mut();
-        for c in 0..a.ncols() {
-            let xc = xj[c];
+        for (c, &xc) in xj.iter().enumerate() {
             if xc != 0.0 {
                 for (&i, &v) in sym.row_idx_of_col_raw(c).iter().zip(a.val_of_col(c)) {
                     oj[i] += v * xc;
