@@ -230,9 +230,14 @@ fn sanitize(text: &str) -> String {
                     end += 1;
                 }
                 let token = text.get(i..end).unwrap_or("");
+                // A decimal literal overflows to ±∞ only with an exponent or over 300
+                // digits; the others need no trial parse.
                 let replace = match token {
                     "NaN" | "Infinity" | "-Infinity" => true,
-                    _ => token.parse::<f64>().is_ok_and(f64::is_infinite),
+                    _ if token.len() > 300 || token.contains(['e', 'E']) => {
+                        token.parse::<f64>().is_ok_and(f64::is_infinite)
+                    }
+                    _ => false,
                 };
                 if replace {
                     out.push_str(text.get(copied..i).unwrap_or(""));

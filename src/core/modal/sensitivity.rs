@@ -31,7 +31,7 @@ use faer::{Conj, Mat, MatMut, Par, Side};
 
 use super::ModalError;
 use crate::core::model::Model;
-use crate::core::model::sparse::{bilinear, spmv_add};
+use crate::core::model::sparse::spmv_add;
 
 /// Largest normwise backward error accepted from the unpivoted `LDLᵀ` solve; a stable
 /// solve gives ~1e-16 times a modest growth factor.
@@ -44,6 +44,9 @@ pub struct Nelson {
     l_values: Vec<f64>,
     mem: MemBuffer,
     values: Vec<f64>,
+    /// `K(θ)` on the union pattern, for the θ it was built at (shared by the modes of one
+    /// Jacobian: each needs only `− λM` on top).
+    k_values: Option<(Vec<f64>, Vec<f64>)>,
     m_phi: Vec<f64>,
     rhs: Mat<f64>,
     f: Mat<f64>,
@@ -78,6 +81,7 @@ impl Nelson {
             cholesky,
             mem,
             values: vec![0.0; pattern.val().len()],
+            k_values: None,
             m_phi: vec![0.0; n],
             work: [vec![0.0; n], vec![0.0; n], vec![0.0; n]],
             rhs: Mat::zeros(n, p),
@@ -108,7 +112,14 @@ impl Nelson {
             .unwrap_or(0);
 
         // A = K(θ) − λM on the union pattern, row and column k replaced by the identity.
-        model.shifted_stiffness_values(theta, lambda, &mut self.values);
+        match &mut self.k_values {
+            Some((t, v)) if t.as_slice() == theta => self.values.copy_from_slice(v),
+            slot => {
+                model.shifted_stiffness_values(theta, 0.0, &mut self.values);
+                *slot = Some((theta.to_vec(), self.values.clone()));
+            }
+        }
+        model.subtract_mass_values(lambda, &mut self.values);
         let pattern = &model.union_pattern().pattern;
         let sym = pattern.symbolic();
         for j in 0..n {
@@ -129,12 +140,14 @@ impl Nelson {
         spmv_add(model.mass(), phi, 1.0, &mut self.m_phi);
         let [f, r, s] = &mut self.work;
         for (l, dl) in dlambda.iter_mut().enumerate().take(p) {
+            // K_l φ once: ∂λ_l = φᵀ K_l φ and f_l = ∂λ_l M φ − K_l φ.
             let kl = model.k_param(l);
-            *dl = bilinear(kl, phi, phi);
+            f.iter_mut().for_each(|v| *v = 0.0);
+            spmv_add(kl, phi, 1.0, f);
+            *dl = f.iter().zip(phi).map(|(a, b)| a * b).sum();
             f.iter_mut()
                 .zip(&self.m_phi)
-                .for_each(|(fi, mp)| *fi = *dl * mp);
-            spmv_add(kl, phi, -1.0, f);
+                .for_each(|(fi, mp)| *fi = *dl * mp - *fi);
             f[k] = 0.0;
             for (i, &v) in f.iter().enumerate() {
                 self.f[(i, l)] = v;

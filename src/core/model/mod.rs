@@ -214,6 +214,15 @@ impl Model {
         }
     }
 
+    /// `out −= σ M` on the union pattern's value array (after
+    /// [`Model::shifted_stiffness_values`] with σ = 0).
+    pub fn subtract_mass_values(&self, sigma: f64, out: &mut [f64]) {
+        if sigma != 0.0 {
+            let p = self.k_params.len();
+            self.union.add_into(p + 1, &self.m, -sigma, out);
+        }
+    }
+
     /// Dense `K(θ)` into `out` (n × n), paper (1).
     pub fn stiffness_dense_into(&self, theta: &[f64], mut out: MatMut<'_, f64>) {
         out.fill(0.0);
