@@ -79,6 +79,18 @@ fn bench_update(c: &mut Criterion) {
                 .unwrap()
         })
     });
+    // The tracker's evaluator: warm eigen solves from the last Ritz block (θ alternating
+    // between two points 1 % apart, so every call solves).
+    let mut warm = Evaluator::new(&model).unwrap();
+    warm.set_warm_start(true);
+    c.bench_function("lab_frame_evaluate_warm", |b| {
+        b.iter(|| {
+            flip = !flip;
+            let t = if flip { &theta0 } else { &theta1 };
+            warm.evaluate(black_box(&model), black_box(&data), black_box(t))
+                .unwrap()
+        })
+    });
     c.bench_function("lab_frame_evaluate_and_jacobian", |b| {
         b.iter(|| {
             flip = !flip;
@@ -154,45 +166,6 @@ fn bench_dense_eigen(c: &mut Criterion) {
     c.bench_function("dense_partial_evd_142_largest_27", |bch| {
         bch.iter(|| partial.largest(black_box(&b), q).unwrap())
     });
-    {
-        use faer::dyn_stack::{MemBuffer, MemStack};
-        use faer::linalg::evd::tridiag;
-        let mut mem = MemBuffer::new(tridiag::tridiag_in_place_scratch::<f64>(
-            n,
-            faer::Par::Seq,
-            Default::default(),
-        ));
-        let mut t = b.clone();
-        let mut h = faer::Mat::<f64>::zeros(32, n - 1);
-        c.bench_function("tridiag_only_142", |bch| {
-            bch.iter(|| {
-                t.copy_from(&b);
-                tridiag::tridiag_in_place(
-                    t.as_mut(),
-                    h.as_mut(),
-                    faer::Par::Seq,
-                    MemStack::new(&mut mem),
-                    Default::default(),
-                );
-            })
-        });
-        let mut h1 = faer::Mat::<f64>::zeros(1, n - 1);
-        c.bench_function("tridiag_only_142_bs1", |bch| {
-            bch.iter(|| {
-                t.copy_from(&b);
-                tridiag::tridiag_in_place(
-                    t.as_mut(),
-                    h1.as_mut(),
-                    faer::Par::Seq,
-                    MemStack::new(&mut mem),
-                    Default::default(),
-                );
-            })
-        });
-        c.bench_function("llt_142", |bch| {
-            bch.iter(|| black_box(&d).llt(faer::Side::Lower).unwrap())
-        });
-    }
     c.bench_function("dense_full_evd_142", |bch| {
         bch.iter(|| black_box(&b).self_adjoint_eigen(faer::Side::Lower).unwrap())
     });

@@ -11,8 +11,17 @@
 //! `X = K⁻¹ M Φ`, and a Rayleigh–Ritz solve on `span X` (Bathe, *Finite Element
 //! Procedures*, §11.6), which works on `K` and `M` directly and restores residuals
 //! `‖Kφ − λMφ‖/‖Kφ‖` near machine precision. Eigenvectors are mass-normalized. Only the
-//! wanted eigenvectors of `B` are computed, by a Krylov–Schur iteration, when they are few
-//! against its size (a few hundred DOFs and up); below that a full decomposition is faster.
+//! wanted eigenvectors of `B` are computed: by a Krylov–Schur iteration when they are few
+//! against its size (a few hundred DOFs and up), below that by tridiagonalization and
+//! inverse iteration ([`super::tridiag`]).
+//!
+//! **Warm solves** (a tracker's, [`EigenSolver::solve_warm`]): from the Ritz block of the
+//! last solve at a nearby θ, subspace iteration with the sparse Cholesky factor of `K(θ)`
+//! (three M-orthonormalized steps, then Rayleigh–Ritz steps until the residuals of the
+//! modes in use are below [`STRICT_RESIDUAL`] and of the others below [`LOOSE_RESIDUAL`]),
+//! then a Sturm count (inertia of `K − σM`) proving no mode slipped past the block. Any
+//! failure falls back to the cold solve. Lab frame: 0.33 ms against 1.12 ms cold
+//! (`cargo bench --bench update`, `lab_frame_evaluate_warm` / `lab_frame_evaluate`).
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::ldlt::factor as ldlt_factor;
@@ -264,7 +273,7 @@ impl EigenSolver for DenseEigen {
     }
 
     /// Subspace iteration from the last block: block inverse iteration and Rayleigh–Ritz
-    /// steps ([`inverse_iteration_step`]) until the residuals hold, then a Sturm count —
+    /// steps (`inverse_iteration_step`) until the residuals hold, then a Sturm count —
     /// the inertia of `K − σM` (`LDLᵀ`, Sylvester's law) — with σ in the widest gap above
     /// the wanted modes, so that no mode slipped past the block (Ritz values bound the
     /// eigenvalues from above, so `k` Ritz values below σ and `k` negative pivots mean the
