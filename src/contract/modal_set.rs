@@ -195,7 +195,46 @@ fn format_time(t: &DateTime<Utc>) -> String {
 /// overflow f64 (`1e999`), outside string literals, by a marker string the JSON parser
 /// accepts (`"\u0000boltwatch-nonfinite:<token>"`), so the walk can name the field.
 /// Everything else, in particular string contents, is copied unchanged.
-fn sanitize(text: &str) -> String {
+fn sanitize(text: &str) -> std::borrow::Cow<'_, str> {
+    if !may_hold_nonfinite(text) {
+        return std::borrow::Cow::Borrowed(text);
+    }
+    std::borrow::Cow::Owned(sanitize_tokens(text))
+}
+
+/// Whether `text` may hold a non-finite literal: `NaN`, `Infinity`, an exponent of three
+/// or more digits, or a run of over 300 digits (anything else is a finite f64). A cheap
+/// scan that lets the common payload skip [`sanitize_tokens`].
+fn may_hold_nonfinite(text: &str) -> bool {
+    if text.contains("NaN") || text.contains("Infinity") {
+        return true;
+    }
+    let b = text.as_bytes();
+    let mut digits = 0;
+    for (i, &c) in b.iter().enumerate() {
+        if c.is_ascii_digit() {
+            digits += 1;
+            if digits > 300 {
+                return true;
+            }
+            continue;
+        }
+        digits = 0;
+        if c == b'e' || c == b'E' {
+            let rest = &b[i + 1..];
+            let rest = rest
+                .strip_prefix(b"+")
+                .or_else(|| rest.strip_prefix(b"-"))
+                .unwrap_or(rest);
+            if rest.iter().take(3).filter(|d| d.is_ascii_digit()).count() == 3 {
+                return true;
+            }
+        }
+    }
+    false
+}
+
+fn sanitize_tokens(text: &str) -> String {
     let bytes = text.as_bytes();
     let mut out = String::with_capacity(text.len() + 16);
     let mut copied = 0; // bytes of `text` already in `out`
@@ -359,17 +398,20 @@ pub fn parse_modal_set(payload: &[u8], ctx: &ValidationContext) -> Result<ModalS
             ));
         };
         for (j, item) in items.iter().enumerate() {
-            let field = format!("channels[{j}]");
-            let name = string(item, &field)?;
+            let field = || format!("channels[{j}]");
+            let name = match item.as_str() {
+                Some(s) if nonfinite_token(item).is_none() => s,
+                _ => string(item, &field())?,
+            };
             if !ctx.model_channels.iter().any(|c| c == name) {
                 return Err(reject(
-                    field,
+                    field(),
                     format!("unknown channel {name:?} (not a channel of the model)"),
                 ));
             }
             if let Some(k) = channels.iter().position(|c| c == name) {
                 return Err(reject(
-                    field,
+                    field(),
                     format!("duplicate channel {name:?} (also channels[{k}])"),
                 ));
             }
@@ -442,6 +484,11 @@ fn parse_mode(i: usize, v: &Value, n_channels: usize) -> Result<MeasuredMode, Re
             };
             let mut shape = Vec::with_capacity(entries.len());
             for (k, e) in entries.iter().enumerate() {
+                // The common case first, without building the entry's path.
+                if let Some(x) = e.as_f64().filter(|x| x.is_finite()) {
+                    shape.push(Some(x));
+                    continue;
+                }
                 shape.push(match e {
                     Value::Null => None,
                     other => Some(number(other, &format!("{s_path}[{k}]")).map_err(|r| {

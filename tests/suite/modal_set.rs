@@ -248,6 +248,26 @@ fn overflowing_number_names_the_field() {
     );
 }
 
+/// Overflow without an exponent (a 400-digit literal), and one at a shape entry: the quick
+/// pre-scan must still send both to the full check.
+#[test]
+fn overflowing_digit_runs_and_shape_entries_name_the_field() {
+    let big = format!("1{}", "0".repeat(400));
+    let payload = format!(
+        r#"{{"schema": "boltwatch.modal_set.v1", "structure": "lab-frame",
+        "time": "2026-11-21T10:00:00Z", "modes": [{{"frequency_hz": {big}}}]}}"#
+    );
+    assert_rejected(
+        parse_bytes(payload.as_bytes()),
+        "modes[0].frequency_hz",
+        &["overflows"],
+    );
+    let payload = br#"{"schema": "boltwatch.modal_set.v1", "structure": "lab-frame",
+        "time": "2026-11-21T10:00:00Z", "channels": ["C1L.1", "C1L.2"],
+        "modes": [{"frequency_hz": 1, "shape": [1.0, -2E+308]}]}"#;
+    assert_rejected(parse_bytes(payload), "modes[0].shape[1]", &["overflows"]);
+}
+
 #[test]
 fn nan_inside_a_string_value_is_not_touched() {
     let payload = br#"{"schema": "boltwatch.modal_set.v1", "structure": "lab-frame",
