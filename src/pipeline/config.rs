@@ -22,7 +22,10 @@ pub struct TrackerConfig {
     pub crosscheck_every_sets: u64,
     /// ... or when this much recording time has passed since the last one, s (0: never).
     pub crosscheck_every_s: f64,
-    /// Checkpoint every this many accepted sets (and on shutdown).
+    /// Checkpoint every this many accepted sets (and on shutdown). A checkpoint costs three
+    /// fsyncs (output, checkpoint file, directory; about 9 ms on this machine): at 1000 sets
+    /// a replay redoes at most about a second of work after a crash and spends under 1 % of
+    /// its time checkpointing (8 % at 100).
     pub checkpoint_every_sets: u64,
     /// Accept a set with the same time as the last accepted one (replays).
     pub allow_equal_time: bool,
@@ -46,7 +49,7 @@ impl Default for TrackerConfig {
             epsilon_jump: 4.0,
             crosscheck_every_sets: 1000,
             crosscheck_every_s: 86_400.0,
-            checkpoint_every_sets: 100,
+            checkpoint_every_sets: 1000,
             allow_equal_time: false,
             shape_weight: 1.0,
             step_tolerance: 0.5,

@@ -185,12 +185,13 @@ impl ModeMatching {
             if iterations >= opts.max_iterations {
                 break Termination::MaxIterations;
             }
-            let jac = self.evaluator.jacobian(model, data, &ev)?;
             let theta = ev.theta.clone();
-            last_jac = Some((theta.clone(), jac.clone()));
+            let jac = &last_jac
+                .insert((theta.clone(), self.evaluator.jacobian(model, data, &ev)?))
+                .1;
             match opts.step {
                 StepControl::FixedKappa(kappa) => {
-                    let Some(step) = gauss_newton_step(&jac, &ev.r) else {
+                    let Some(step) = gauss_newton_step(jac, &ev.r) else {
                         break Termination::Diverged("SᵀWS is singular".into());
                     };
                     let new: Vec<f64> = (0..p).map(|i| theta[i] + kappa * step[i]).collect();
