@@ -245,17 +245,30 @@ fn residual_at(
     n_cand: usize,
 ) -> Evaluation {
     let channels = model.channels();
+    // Every candidate's reading at every model channel, once (rows: candidates).
+    let readings: Vec<Vec<f64>> = (0..n_cand)
+        .map(|k| {
+            channels
+                .iter()
+                .map(|ch| ch.dofs.iter().map(|&(i, w)| w * eig.phi[(i, k)]).sum())
+                .collect()
+        })
+        .collect();
     let mut pairing = Vec::with_capacity(data.modes.len());
     let mut macs = Vec::with_capacity(data.modes.len());
     let mut scales = Vec::with_capacity(data.modes.len());
     let mut r = Vec::with_capacity(data.n_data());
     let mut dphi_k = Vec::new();
+    let gather = |k: usize, idx: &[usize], out: &mut Vec<f64>| {
+        out.clear();
+        out.extend(idx.iter().map(|&c| readings[k][c]));
+    };
     for mode in &data.modes {
         let (k, mac_k) = match &mode.shape {
             Some(s) => {
                 let mut best = (0, f64::NEG_INFINITY);
                 for k in 0..n_cand {
-                    read_channels(&eig, k, &s.channels, channels, &mut dphi_k);
+                    gather(k, &s.channels, &mut dphi_k);
                     let v = mac(&s.values, &dphi_k);
                     if v > best.1 {
                         best = (k, v);
@@ -280,7 +293,7 @@ fn residual_at(
         r.push((mode.lambda - eig.lambda[k]) / mode.sigma_lambda);
         match &mode.shape {
             Some(s) => {
-                read_channels(&eig, k, &s.channels, channels, &mut dphi_k);
+                gather(k, &s.channels, &mut dphi_k);
                 let c = scale_factor(&s.values, &dphi_k);
                 scales.push(c);
                 for ((psi, dp), sd) in s.values.iter().zip(&dphi_k).zip(&s.sigma) {
