@@ -449,10 +449,10 @@ fn orthonormal_inverse_iteration(
     let mut g = x.transpose() * &mx;
     symmetrize(&mut g);
     let l = g.llt(Side::Lower).ok()?;
-    // M X ← M X L⁻ᵀ: solve L Yᵀ = (M X)ᵀ.
-    let mut mxt = mx.transpose().to_owned();
-    l.L().solve_lower_triangular_in_place(mxt.as_mut());
-    Some(mxt.transpose().to_owned())
+    // M X ← M X L⁻ᵀ: solve L Yᵀ = (M X)ᵀ on the transposed view, in place.
+    l.L()
+        .solve_lower_triangular_in_place(mx.as_mut().transpose_mut());
+    Some(mx)
 }
 
 /// One block inverse iteration `X = K⁻¹ M Φ0` (columns scaled to unit M-norm) and a

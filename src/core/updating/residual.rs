@@ -214,18 +214,29 @@ impl Evaluator {
                 read_channels(&ev.eig, k, &s.channels, channels, &mut dp);
                 let c = ev.scale[m];
                 let norm2: f64 = dp.iter().map(|v| v * v).sum();
+                // ∂c = (ψ̂ − 2c Dφ)ᵀ D∂φ / ‖Dφ‖²
+                let weight: Vec<f64> = s
+                    .values
+                    .iter()
+                    .zip(&dp)
+                    .map(|(psi, d)| (psi - 2.0 * c * d) / norm2)
+                    .collect();
                 for l in 0..p {
-                    // ∂c = (ψ̂ − 2c Dφ)ᵀ D∂φ / ‖Dφ‖²
+                    let dcol = dch.col(l);
                     let dc: f64 = s
                         .channels
                         .iter()
-                        .zip(&s.values)
-                        .zip(&dp)
-                        .map(|((&ch, psi), d)| (psi - 2.0 * c * d) * dch[(ch, l)])
-                        .sum::<f64>()
-                        / norm2;
-                    for (i, &ch) in s.channels.iter().enumerate() {
-                        jac[(row + i, l)] = -(c * dch[(ch, l)] + dc * dp[i]) / s.sigma[i];
+                        .zip(&weight)
+                        .map(|(&ch, w)| w * dcol[ch])
+                        .sum();
+                    let jcol = jac
+                        .col_mut(l)
+                        .try_as_col_major_mut()
+                        .expect("owned matrix columns are contiguous")
+                        .as_slice_mut();
+                    for (i, ((&ch, &d), sd)) in s.channels.iter().zip(&dp).zip(&s.sigma).enumerate()
+                    {
+                        jcol[row + i] = -(c * dcol[ch] + dc * d) / sd;
                     }
                 }
                 row += s.channels.len();
