@@ -40,7 +40,6 @@ use faer::{Col, Mat, MatMut, Par, Side};
 use super::ModalError;
 use super::tridiag::PartialSymEvd;
 use crate::core::model::Model;
-use crate::core::model::sparse::sparse_times_dense;
 
 /// Modes computed beyond those asked for, so the Rayleigh–Ritz step converges the wanted
 /// ones fast (error factor λ_q / λ_{q+guard+1} per step).
@@ -240,7 +239,7 @@ impl EigenSolver for DenseEigen {
         let mut phi0 = top_eigenvectors(&b, q, &mut self.partial)?;
         l.transpose().solve_upper_triangular_in_place(phi0.as_mut());
 
-        let mphi0 = sparse_times_dense(model.mass(), phi0.as_ref());
+        let mphi0 = model.mass() * &phi0;
         let mut solve = |b: MatMut<'_, f64>| llt.solve_in_place(b);
         let RitzStep { lambda, phi: x, .. } = inverse_iteration_step(&mut solve, model, mphi0, 0)?;
         check_positive(&lambda[..n_modes])?;
@@ -308,7 +307,7 @@ impl EigenSolver for DenseEigen {
         };
         let mut solve = |b: MatMut<'_, f64>| llt.solve_in_place(b);
         let strict = strict.min(n_modes);
-        let mut mphi = sparse_times_dense(model.mass(), block.x.as_ref());
+        let mut mphi = model.mass() * &block.x;
         // The first solves only advance the subspace (K⁻¹M)ᵏ span Φ, kept M-orthonormal;
         // the Rayleigh–Ritz steps that follow extract its best pairs from the same subspace
         // (the span, hence the result, is that of a Rayleigh–Ritz at every step, at a
@@ -376,14 +375,16 @@ impl EigenSolver for DenseEigen {
 
 impl DenseEigen {
     /// The number of eigenvalues below σ: the negative pivots of `K − σM = LDLᵀ` (Sylvester's
-    /// law of inertia). `None` if the
+    /// law of inertia), for the `K(θ)` whose union-pattern values are in `self.k_values`
+    /// (the warm solve's; the dense fallback builds `K(θ)` from θ). `None` if the
     /// unpivoted factorization meets a zero pivot (σ on an eigenvalue).
     fn count_below(&mut self, model: &Model, theta: &[f64], sigma: f64) -> Option<usize> {
         // Sparse when the symbolic factorization is simplicial (D is then the first entry
         // of each column of the factor); the inertia does not depend on the fill-reducing
         // permutation.
         if let SymbolicCholeskyRaw::Simplicial(simplicial) = self.sturm_symbolic.raw() {
-            model.shifted_stiffness_values(theta, sigma, &mut self.sturm_values);
+            self.sturm_values.copy_from_slice(&self.k_values);
+            model.subtract_mass_values(sigma, &mut self.sturm_values);
             let a =
                 SparseColMatRef::new(model.union_pattern().pattern.symbolic(), &self.sturm_values);
             self.sturm_symbolic
@@ -435,17 +436,7 @@ fn orthonormal_inverse_iteration(
     model: &Model,
     mphi0: Mat<f64>,
 ) -> Option<Mat<f64>> {
-    let (n, q) = (mphi0.nrows(), mphi0.ncols());
-    let mut x = mphi0;
-    solve(x.as_mut());
-    let mut mx = sparse_times_dense(model.mass(), x.as_ref());
-    for j in 0..q {
-        let s = 1.0 / (x.col(j).transpose() * mx.col(j)).sqrt();
-        for i in 0..n {
-            x[(i, j)] *= s;
-            mx[(i, j)] *= s;
-        }
-    }
+    let (x, _, mut mx) = solve_m_normalized(solve, model, mphi0);
     let mut g = x.transpose() * &mx;
     symmetrize(&mut g);
     let l = g.llt(Side::Lower).ok()?;
@@ -453,6 +444,29 @@ fn orthonormal_inverse_iteration(
     l.L()
         .solve_lower_triangular_in_place(mx.as_mut().transpose_mut());
     Some(mx)
+}
+
+/// `X = K⁻¹ M Φ0` with its columns scaled to unit M-norm, returned with `K X` (= `M Φ0`,
+/// scaled alike) and `M X`. `solve` applies `K⁻¹` in place; `mphi0` is `M Φ0`.
+fn solve_m_normalized(
+    solve: &mut dyn FnMut(MatMut<'_, f64>),
+    model: &Model,
+    mphi0: Mat<f64>,
+) -> (Mat<f64>, Mat<f64>, Mat<f64>) {
+    let (n, q) = (mphi0.nrows(), mphi0.ncols());
+    let mut x = mphi0.clone();
+    solve(x.as_mut());
+    let mut kx = mphi0;
+    let mut mx = model.mass() * &x;
+    for j in 0..q {
+        let s = 1.0 / (x.col(j).transpose() * mx.col(j)).sqrt();
+        for i in 0..n {
+            x[(i, j)] *= s;
+            kx[(i, j)] *= s;
+            mx[(i, j)] *= s;
+        }
+    }
+    (x, kx, mx)
 }
 
 /// One block inverse iteration `X = K⁻¹ M Φ0` (columns scaled to unit M-norm) and a
@@ -466,19 +480,8 @@ fn inverse_iteration_step(
     mphi0: Mat<f64>,
     n_k: usize,
 ) -> Result<RitzStep, ModalError> {
-    let (n, q) = (mphi0.nrows(), mphi0.ncols());
-    let mut x = mphi0.clone();
-    solve(x.as_mut());
-    let mut kx = mphi0; // K X = M Φ0, rescaled with X below
-    let mut mx = sparse_times_dense(model.mass(), x.as_ref());
-    for j in 0..q {
-        let s = 1.0 / (x.col(j).transpose() * mx.col(j)).sqrt();
-        for i in 0..n {
-            x[(i, j)] *= s;
-            kx[(i, j)] *= s;
-            mx[(i, j)] *= s;
-        }
-    }
+    let q = mphi0.ncols();
+    let (x, kx, mx) = solve_m_normalized(solve, model, mphi0);
     let mut kr = x.transpose() * &kx;
     let mut mr = x.transpose() * &mx;
     symmetrize(&mut kr);
@@ -627,6 +630,7 @@ mod tests {
             solver.sturm_symbolic.raw(),
             SymbolicCholeskyRaw::Simplicial(_)
         ));
+        model.shifted_stiffness_values(&theta, 0.0, &mut solver.k_values);
         for k in [1, 5, 9, 19, 27, 29] {
             let sigma = (pairs.lambda[k - 1] * pairs.lambda[k]).sqrt();
             assert_eq!(

@@ -208,10 +208,7 @@ impl Model {
         for (l, kl) in self.k_params.iter().enumerate() {
             self.union.add_into(l + 1, kl, theta[l], out);
         }
-        if sigma != 0.0 {
-            let p = self.k_params.len();
-            self.union.add_into(p + 1, &self.m, -sigma, out);
-        }
+        self.subtract_mass_values(sigma, out);
     }
 
     /// `out −= σ M` on the union pattern's value array (after

@@ -59,45 +59,6 @@ pub fn spmv_add(a: &Csc, x: &[f64], alpha: f64, y: &mut [f64]) {
     }
 }
 
-/// `xᵀ A y` for a sparse `A`.
-/// `A X` for a sparse `A` and a dense `X` (a plain column loop: for the few-hundred-DOF
-/// models of the dense solver it is several times faster than the general kernel).
-pub fn sparse_times_dense(a: &Csc, x: faer::MatRef<'_, f64>) -> faer::Mat<f64> {
-    let (n, q) = (a.nrows(), x.ncols());
-    let mut out = faer::Mat::zeros(n, q);
-    let sym = a.symbolic();
-    for j in 0..q {
-        let xj: Vec<f64> = x.col(j).iter().copied().collect();
-        let oj = out
-            .col_mut(j)
-            .try_as_col_major_mut()
-            .expect("owned matrix columns are contiguous")
-            .as_slice_mut();
-        for (c, &xc) in xj.iter().enumerate() {
-            if xc != 0.0 {
-                for (&i, &v) in sym.row_idx_of_col_raw(c).iter().zip(a.val_of_col(c)) {
-                    oj[i] += v * xc;
-                }
-            }
-        }
-    }
-    out
-}
-
-pub fn bilinear(a: &Csc, x: &[f64], y: &[f64]) -> f64 {
-    let s = a.symbolic();
-    let mut acc = 0.0;
-    for (j, &yj) in y.iter().enumerate().take(a.ncols()) {
-        if yj == 0.0 {
-            continue;
-        }
-        for (&i, &v) in s.row_idx_of_col_raw(j).iter().zip(a.val_of_col(j)) {
-            acc += x[i] * v * yj;
-        }
-    }
-    acc
-}
-
 /// The union of the patterns of several matrices, with each matrix's entries mapped to
 /// positions in the union's value array.
 #[derive(Debug, Clone)]

@@ -222,12 +222,15 @@ impl ModeMatching {
                     }
                     let a = ju.transpose() * &ju;
                     let g = ju.transpose() * faer::ColRef::from_slice(&ev.r);
-                    // Convergence test on the undamped step.
-                    if let Some(gn) = solve_normal(&a, &g)
+                    // Convergence test on the undamped step (A factored once for the step
+                    // and the standard deviations).
+                    let normal = a.llt(Side::Lower).ok();
+                    if let Some(llt) = &normal
+                        && let Some(gn) = step_from(llt, &g)
                         && (gn.iter().all(|d| d.exp_m1().abs() < opts.tol)
                             || opts
                                 .sigma_tol
-                                .is_some_and(|t| within_std(&a, &gn, t, data, &ev)))
+                                .is_some_and(|t| within_std(llt, &gn, t, data, &ev)))
                     {
                         let new: Vec<f64> = (0..p).map(|i| theta[i] * gn[i].exp()).collect();
                         match opts.final_step {
@@ -435,13 +438,10 @@ fn covariance_from_jacobian(
 }
 
 /// Whether every `|step_i|` is below `t` standard deviations `√(A⁻¹)_ii` of (15) (scaled
-/// by `ε/(N − N_θ)` under weighting (9), as the covariance is), for the normal matrix `A`
-/// of the same parameterization as the step.
-fn within_std(a: &Mat<f64>, step: &[f64], t: f64, data: &MeasuredData, ev: &Evaluation) -> bool {
-    let Ok(llt) = a.llt(Side::Lower) else {
-        return false;
-    };
-    let p = a.nrows();
+/// by `ε/(N − N_θ)` under weighting (9), as the covariance is), for the Cholesky factor of
+/// the normal matrix `A` of the same parameterization as the step.
+fn within_std(llt: &Llt<f64>, step: &[f64], t: f64, data: &MeasuredData, ev: &Evaluation) -> bool {
+    let p = step.len();
     let mut inv = Mat::<f64>::identity(p, p);
     llt.solve_in_place(inv.as_mut());
     let scale = match data.weighting {
@@ -455,13 +455,12 @@ fn within_std(a: &Mat<f64>, step: &[f64], t: f64, data: &MeasuredData, ev: &Eval
 fn gauss_newton_step(jac: &Mat<f64>, r: &[f64]) -> Option<Vec<f64>> {
     let a = jac.transpose() * jac;
     let g = jac.transpose() * faer::ColRef::from_slice(r);
-    solve_normal(&a, &g)
+    step_from(&a.llt(Side::Lower).ok()?, &g)
 }
 
-/// `−A⁻¹ g` for the normal matrix `A = JᵀJ` and gradient `g = Jᵀr` (None if `A` is not
-/// positive definite or the step is not finite).
-fn solve_normal(a: &Mat<f64>, g: &faer::Col<f64>) -> Option<Vec<f64>> {
-    let llt: Llt<f64> = a.llt(Side::Lower).ok()?;
+/// `−A⁻¹ g` for the normal matrix `A = JᵀJ` and gradient `g = Jᵀr`, from the Cholesky
+/// factor of `A` (None if the step is not finite).
+fn step_from(llt: &Llt<f64>, g: &faer::Col<f64>) -> Option<Vec<f64>> {
     let mut step = -g;
     llt.solve_in_place(step.as_mat_mut());
     let v: Vec<f64> = (0..step.nrows()).map(|i| step[i]).collect();
