@@ -5,6 +5,7 @@
 pub mod commands;
 pub mod contract;
 pub mod core;
+pub mod daemon;
 pub mod io;
 pub mod pipeline;
 pub mod plot;

@@ -2,7 +2,7 @@
 
 use std::process::ExitCode;
 
-use boltwatch::commands::{bayes, modes, replay, report, scenario, simulate, update};
+use boltwatch::commands::{bayes, modes, publish, replay, report, run, scenario, simulate, update};
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
@@ -32,6 +32,11 @@ enum Command {
     Replay(replay::ReplayArgs),
     /// Plot a replay's outputs: stiffness histories with bands and alerts, frequencies, ε.
     Report(report::ReportArgs),
+    /// The daemon: track the configured structures live over Zenoh (Zenoh and a rolling
+    /// MCAP log out), until SIGINT or SIGTERM.
+    Run(run::RunArgs),
+    /// Publish a recording's modal sets over Zenoh (a field simulator for demos and tests).
+    Publish(publish::PublishArgs),
 }
 
 fn main() -> ExitCode {
@@ -45,6 +50,8 @@ fn main() -> ExitCode {
         Command::Scenario(a) => scenario::run(a),
         Command::Replay(a) => replay::run(a),
         Command::Report(a) => report::run(a),
+        Command::Run(a) => run::run(a),
+        Command::Publish(a) => publish::run(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -21,6 +21,48 @@ pub struct Settings {
     pub structures: Vec<StructureSettings>,
     pub tracker: TrackerConfig,
     pub crosscheck: CrosscheckConfig,
+    pub zenoh: ZenohSettings,
+    pub daemon: DaemonSettings,
+    pub metrics: MetricsSettings,
+}
+
+/// `[zenoh]`: the session of `boltwatch run`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ZenohSettings {
+    pub mode: ZenohMode,
+    pub listen: Vec<String>,
+    pub connect: Vec<String>,
+    pub multicast_scouting: bool,
+    /// A Zenoh JSON5 file that configures the session entirely ("": none).
+    pub config_file: PathBuf,
+}
+
+/// Zenoh session mode.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ZenohMode {
+    Peer,
+    Client,
+}
+
+/// `[daemon]`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DaemonSettings {
+    pub state_dir: PathBuf,
+    pub queue: usize,
+    pub checkpoint_every_s: f64,
+    pub log_rotate_mib: u64,
+    pub log_rotate_hours: f64,
+}
+
+/// `[metrics]`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MetricsSettings {
+    /// `host:port` of the Prometheus endpoint ("": off).
+    pub listen: String,
 }
 
 /// `[log]`.
@@ -79,6 +121,9 @@ impl Settings {
                 .prefix_separator("__")
                 .separator("__")
                 .try_parsing(true)
+                .list_separator(",")
+                .with_list_parse_key("zenoh.listen")
+                .with_list_parse_key("zenoh.connect")
                 .source(Some(env)),
         );
         let what = file.map_or("the default configuration".to_string(), |f| {
@@ -111,6 +156,47 @@ impl Settings {
                     s.name
                 );
             }
+        }
+        if self.daemon.queue == 0 {
+            bail!("configuration key daemon.queue: must be at least 1");
+        }
+        for (key, v) in [
+            ("daemon.checkpoint_every_s", self.daemon.checkpoint_every_s),
+            ("daemon.log_rotate_hours", self.daemon.log_rotate_hours),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                bail!("configuration key {key}: {v} must be a finite number > 0");
+            }
+        }
+        if self.daemon.log_rotate_mib == 0 {
+            bail!("configuration key daemon.log_rotate_mib: must be at least 1");
+        }
+        if !self.metrics.listen.is_empty()
+            && self.metrics.listen.parse::<std::net::SocketAddr>().is_err()
+        {
+            bail!(
+                "configuration key metrics.listen: `{}` is not host:port (e.g. 127.0.0.1:9464)",
+                self.metrics.listen
+            );
+        }
+        if self.zenoh.config_file.as_os_str().is_empty() {
+            for (key, list) in [
+                ("zenoh.listen", &self.zenoh.listen),
+                ("zenoh.connect", &self.zenoh.connect),
+            ] {
+                for e in list {
+                    if e.parse::<zenoh::config::EndPoint>().is_err() {
+                        bail!(
+                            "configuration key {key}: `{e}` is not a Zenoh endpoint (e.g. tcp/127.0.0.1:7447)"
+                        );
+                    }
+                }
+            }
+        } else if !self.zenoh.config_file.is_file() {
+            bail!(
+                "configuration key zenoh.config_file: {} does not exist",
+                self.zenoh.config_file.display()
+            );
         }
         if tracing_subscriber::EnvFilter::try_new(&self.log.level).is_err() {
             bail!(

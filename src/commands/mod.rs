@@ -2,8 +2,10 @@
 
 pub mod bayes;
 pub mod modes;
+pub mod publish;
 pub mod replay;
 pub mod report;
+pub mod run;
 pub mod scenario;
 pub mod simulate;
 pub mod update;

@@ -6,3 +6,4 @@ pub mod checkpoint;
 pub mod mcap;
 pub mod replay;
 pub mod schemas;
+pub mod zenoh;

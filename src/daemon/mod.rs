@@ -1,0 +1,218 @@
+//! `boltwatch run` (issue 5, DESIGN §3.4 and §7): the live daemon.
+//!
+//! One Zenoh session. Per watched structure: a subscriber on `boltwatch/<s>/modal` that
+//! puts each payload into a bounded queue (a set that does not fit is dropped and counted,
+//! and the count is published on `rejected`, logged and shown in status and metrics); a
+//! tracking thread ([`worker`]) that runs the sans-I/O [`crate::pipeline::Tracker`] on the
+//! queue, publishes `stiffness`, `alerts`, `crosscheck` and `rejected`, and writes inputs and
+//! outputs into a rolling MCAP log ([`log`]); a cross-check thread; a queryable on
+//! `boltwatch/<s>/status`. A Prometheus endpoint ([`metrics`]) serves every structure.
+//!
+//! State lives in `[daemon] state_dir`: `<s>.checkpoint.json` (the tracker, written
+//! atomically every `tracker.checkpoint_every_sets` sets, every `checkpoint_every_s` seconds
+//! while sets arrive, and at shutdown) and `log/`. A restart resumes from the checkpoint.
+//!
+//! Shutdown (SIGINT, SIGTERM): the subscribers are undeclared first, every set already
+//! queued is processed, a running cross-check is awaited, the state is checkpointed and the
+//! log file is finished, so nothing received is lost and a restart duplicates nothing.
+
+pub mod log;
+pub mod metrics;
+pub mod worker;
+
+use std::sync::mpsc;
+use std::time::Duration;
+
+use anyhow::{Context, Result, anyhow, bail};
+use zenoh::Wait;
+
+use crate::commands::load_model;
+use crate::io::checkpoint;
+use crate::io::mcap::topic;
+use crate::io::zenoh::{session_config, zerr};
+use crate::pipeline::Tracker;
+use crate::settings::Settings;
+use metrics::Shared;
+use worker::{Input, Worker, enqueue};
+
+/// Runs the daemon until SIGINT or SIGTERM (or a tracking thread fails).
+pub async fn run(settings: Settings) -> Result<()> {
+    let d = &settings.daemon;
+    std::fs::create_dir_all(&d.state_dir).with_context(|| {
+        format!(
+            "configuration key daemon.state_dir: cannot create {}",
+            d.state_dir.display()
+        )
+    })?;
+    let session = zenoh::open(session_config(&settings.zenoh)?)
+        .await
+        .map_err(zerr("cannot open the Zenoh session"))?;
+    tracing::info!(zid = %session.zid(), "Zenoh session open");
+
+    let (done_tx, mut done_rx) = tokio::sync::mpsc::unbounded_channel::<(String, Result<()>)>();
+    let mut queues = Vec::new();
+    let mut threads = Vec::new();
+    let mut subscribers = Vec::new();
+    let mut queryables = Vec::new();
+    let mut shared_all = Vec::new();
+    for s in &settings.structures {
+        let model = load_model(&s.model)?;
+        if model.name != s.name {
+            bail!(
+                "configuration key structures: structure `{}` has model file {} describing `{}`",
+                s.name,
+                s.model.display(),
+                model.name
+            );
+        }
+        let ckpt = d.state_dir.join(format!("{}.checkpoint.json", s.name));
+        let tracker = match checkpoint::read(&ckpt)? {
+            Some(v) => {
+                let t =
+                    Tracker::restore(model, settings.tracker.clone(), &v).with_context(|| {
+                        format!(
+                            "checkpoint {} (move it away to start afresh)",
+                            ckpt.display()
+                        )
+                    })?;
+                tracing::info!(
+                    structure = s.name,
+                    accepted = t.state().accepted,
+                    "resumed from checkpoint {}",
+                    ckpt.display()
+                );
+                t
+            }
+            None => Tracker::new(model, settings.tracker.clone())?,
+        };
+        let log = log::RollingLog::open(
+            &d.state_dir.join("log"),
+            &s.name,
+            d.log_rotate_mib << 20,
+            Duration::from_secs_f64(d.log_rotate_hours * 3600.0),
+        )?;
+        let shared = Shared::new(&s.name, d.queue);
+        let worker = Worker::new(
+            tracker,
+            session.clone(),
+            log,
+            ckpt,
+            Duration::from_secs_f64(d.checkpoint_every_s),
+            shared.clone(),
+            settings.crosscheck.clone(),
+        )?;
+        let (tx, rx) = mpsc::sync_channel::<Input>(d.queue);
+        let done = done_tx.clone();
+        let name = s.name.clone();
+        threads.push(
+            std::thread::Builder::new()
+                .name(format!("track-{name}"))
+                .spawn(move || {
+                    crate::core::sequential_numerics();
+                    let r = worker.run(rx);
+                    let _ = done.send((name, r));
+                })?,
+        );
+        let (cb_tx, cb_shared) = (tx.clone(), shared.clone());
+        subscribers.push(
+            session
+                .declare_subscriber(topic(&s.name, "modal"))
+                .callback(move |sample| {
+                    enqueue(&cb_tx, &cb_shared, sample.payload().to_bytes().into_owned());
+                })
+                .await
+                .map_err(zerr(format!(
+                    "cannot subscribe to {}",
+                    topic(&s.name, "modal")
+                )))?,
+        );
+        let q_shared = shared.clone();
+        queryables.push(
+            session
+                .declare_queryable(topic(&s.name, "status"))
+                .callback(move |query| {
+                    let body = serde_json::to_vec(&q_shared.status_json()).unwrap_or_default();
+                    if let Err(e) = query.reply(query.key_expr().clone(), body).wait() {
+                        tracing::warn!("cannot answer a status query: {e}");
+                    }
+                })
+                .await
+                .map_err(zerr(format!("cannot declare {}", topic(&s.name, "status"))))?,
+        );
+        queues.push(tx);
+        shared_all.push(shared);
+        tracing::info!(
+            structure = s.name,
+            "watching {} (status on {})",
+            topic(&s.name, "modal"),
+            topic(&s.name, "status")
+        );
+    }
+    drop(done_tx);
+
+    let metrics_task = if settings.metrics.listen.is_empty() {
+        None
+    } else {
+        let listener = tokio::net::TcpListener::bind(&settings.metrics.listen)
+            .await
+            .with_context(|| {
+                format!(
+                    "configuration key metrics.listen: cannot listen on {}",
+                    settings.metrics.listen
+                )
+            })?;
+        tracing::info!("metrics on http://{}/metrics", settings.metrics.listen);
+        Some(tokio::spawn(metrics::serve(listener, shared_all.clone())))
+    };
+
+    let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+        .context("cannot install the SIGTERM handler")?;
+    let mut failure = None;
+    tokio::select! {
+        _ = sigterm.recv() => tracing::info!("SIGTERM: shutting down"),
+        _ = tokio::signal::ctrl_c() => tracing::info!("SIGINT: shutting down"),
+        Some((name, r)) = done_rx.recv() => {
+            let e = r.err().unwrap_or_else(|| anyhow!("stopped unexpectedly"));
+            tracing::error!(structure = name, "tracking thread failed: {e:#}");
+            failure = Some(e.context(format!("tracking of {name}")));
+        }
+    }
+
+    // No new sets from here on; everything queued is still processed.
+    for sub in subscribers {
+        sub.undeclare()
+            .await
+            .map_err(zerr("cannot undeclare a subscriber"))?;
+    }
+    let joined = tokio::task::spawn_blocking(move || {
+        for tx in &queues {
+            let _ = tx.send(Input::Shutdown);
+        }
+        drop(queues);
+        for t in threads {
+            let _ = t.join();
+        }
+    });
+    joined.await.map_err(|e| anyhow!("shutdown: {e}"))?;
+    while let Ok((name, r)) = done_rx.try_recv() {
+        if let Err(e) = r {
+            tracing::error!(structure = name, "tracking thread failed: {e:#}");
+            failure.get_or_insert(e.context(format!("tracking of {name}")));
+        }
+    }
+    if let Some(t) = metrics_task {
+        t.abort();
+    }
+    drop(queryables);
+    session
+        .close()
+        .await
+        .map_err(zerr("cannot close the Zenoh session"))?;
+    match failure {
+        Some(e) => Err(e),
+        None => {
+            tracing::info!("stopped");
+            Ok(())
+        }
+    }
+}
