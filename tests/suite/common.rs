@@ -94,3 +94,48 @@ pub fn simulated_data(
     };
     simulated_measured_data(model, theta, n_modes, stated, noisy, seed).unwrap()
 }
+
+/// A Python virtual environment `target/<name>` (made once per target directory) in which
+/// `import_check` runs; `packages` are pip-installed into it when it does not.
+pub fn python_venv(name: &str, import_check: &str, packages: &[&str]) -> std::path::PathBuf {
+    use std::process::Command;
+    let target = std::env::current_exe()
+        .unwrap()
+        .ancestors()
+        .nth(3)
+        .unwrap()
+        .to_path_buf();
+    let venv = target.join(name);
+    let python = venv.join("bin/python");
+    if !python.exists() {
+        let ok = Command::new("python3")
+            .args(["-m", "venv"])
+            .arg(&venv)
+            .status()
+            .unwrap()
+            .success();
+        assert!(ok, "python3 -m venv {} failed", venv.display());
+    }
+    let imports = || {
+        Command::new(&python)
+            .args(["-c", import_check])
+            .stderr(std::process::Stdio::null())
+            .status()
+            .unwrap()
+            .success()
+    };
+    if !imports() {
+        let ok = Command::new(&python)
+            .args(["-m", "pip", "install", "--quiet"])
+            .args(packages)
+            .status()
+            .unwrap()
+            .success();
+        assert!(ok, "pip install {packages:?} failed");
+        assert!(
+            imports(),
+            "`{import_check}` fails after pip install {packages:?}"
+        );
+    }
+    python
+}

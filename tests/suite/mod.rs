@@ -3,6 +3,7 @@ mod calibration;
 mod cantilever_cases;
 mod cli;
 mod common;
+mod daemon;
 mod fe;
 mod modal_set;
 mod mode_matching;

@@ -7,6 +7,7 @@ use std::time::Instant;
 
 use rand::{Rng, SeedableRng};
 
+use super::common::python_venv;
 use super::tracker::{make_scenario, payloads, tmp_dir};
 use boltwatch::io::mcap::{ChannelSpec, McapWriter, read_all, topic};
 
@@ -119,47 +120,13 @@ fn killed_replay_resumes_to_the_same_bytes() {
     assert!(std::fs::read(&out).unwrap() == a);
 }
 
-/// A virtual environment with the official Python `mcap` reader, made once per target
-/// directory.
+/// A virtual environment with the official Python `mcap` reader.
 fn python_with_mcap() -> PathBuf {
-    let target = std::env::current_exe()
-        .unwrap()
-        .ancestors()
-        .nth(3)
-        .unwrap()
-        .to_path_buf();
-    let venv = target.join("py-mcap-venv");
-    let python = venv.join("bin/python");
-    if !python.exists() {
-        let ok = Command::new("python3")
-            .args(["-m", "venv"])
-            .arg(&venv)
-            .status()
-            .unwrap()
-            .success();
-        assert!(ok, "python3 -m venv failed");
-    }
-    let ok = Command::new(&python)
-        .args(["-c", "import mcap, zstandard"])
-        .status()
-        .unwrap()
-        .success();
-    if !ok {
-        let ok = Command::new(&python)
-            .args([
-                "-m",
-                "pip",
-                "install",
-                "--quiet",
-                "mcap==1.6.0",
-                "zstandard==0.25.0",
-            ])
-            .status()
-            .unwrap()
-            .success();
-        assert!(ok, "pip install mcap failed");
-    }
-    python
+    python_venv(
+        "py-mcap-venv",
+        "import mcap, zstandard",
+        &["mcap==1.6.0", "zstandard==0.25.0"],
+    )
 }
 
 /// The official Python `mcap` package reads the output: every channel and schema (JSON
