@@ -51,14 +51,26 @@ impl Daemon {
     /// configuration (no `[zenoh]`/`[daemon]`/`[metrics]` tables in `extra`: use
     /// `daemon_keys` for keys of `[daemon]`).
     pub fn start(dir: &Path, daemon_keys: &str, extra: &str) -> Self {
-        let port = free_port();
-        let endpoint = format!("tcp/127.0.0.1:{port}");
+        let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+        let zenoh = format!("listen = [\"{endpoint}\"]");
+        Self::start_with(dir, &zenoh, endpoint, daemon_keys, extra)
+    }
+
+    /// [`Daemon::start`] with the `[zenoh]` table's body given; clients reach it at
+    /// `endpoint`.
+    pub fn start_with(
+        dir: &Path,
+        zenoh: &str,
+        endpoint: String,
+        daemon_keys: &str,
+        extra: &str,
+    ) -> Self {
         let metrics = format!("127.0.0.1:{}", free_port());
         let config = dir.join("boltwatch.toml");
         std::fs::write(
             &config,
             format!(
-                "[zenoh]\nlisten = [\"{endpoint}\"]\n\n[daemon]\nstate_dir = \"{}\"\n{daemon_keys}\n\n[metrics]\nlisten = \"{metrics}\"\n\n{extra}\n",
+                "[zenoh]\n{zenoh}\n\n[daemon]\nstate_dir = \"{}\"\n{daemon_keys}\n\n[metrics]\nlisten = \"{metrics}\"\n\n{extra}\n",
                 dir.join("state").display()
             ),
         )
@@ -144,6 +156,13 @@ impl Drop for Daemon {
             let _ = self.child.wait();
         }
     }
+}
+
+/// An in-process Zenoh session from a JSON5 configuration.
+fn client_from(json5: &str) -> zenoh::Session {
+    zenoh::open(zenoh::Config::from_json5(json5).unwrap())
+        .wait()
+        .unwrap()
 }
 
 /// An in-process Zenoh session connected to `endpoint`.
@@ -727,4 +746,182 @@ fn python_zenoh_client_publishes_and_receives() {
     assert_eq!(got["status"]["schema"], "boltwatch.status.v1");
     assert_eq!(got["status"]["sets"]["accepted"], 150);
     assert!(daemon.terminate().success());
+}
+
+/// A test CA and a server certificate for 127.0.0.1, made with the `openssl` command.
+fn make_certs(dir: &Path) {
+    let tls = dir.join("tls");
+    std::fs::create_dir_all(&tls).unwrap();
+    std::fs::write(
+        tls.join("server.ext"),
+        "subjectAltName=IP:127.0.0.1,DNS:localhost\nbasicConstraints=CA:FALSE\n\
+         keyUsage=digitalSignature,keyEncipherment\nextendedKeyUsage=serverAuth\n",
+    )
+    .unwrap();
+    let steps: [&[&str]; 3] = [
+        &[
+            "req",
+            "-x509",
+            "-newkey",
+            "rsa:2048",
+            "-nodes",
+            "-days",
+            "2",
+            "-subj",
+            "/CN=boltwatch test CA",
+            "-addext",
+            "basicConstraints=critical,CA:TRUE",
+            "-addext",
+            "keyUsage=critical,keyCertSign,cRLSign",
+            "-keyout",
+            "ca-key.pem",
+            "-out",
+            "ca.pem",
+        ],
+        &[
+            "req",
+            "-newkey",
+            "rsa:2048",
+            "-nodes",
+            "-subj",
+            "/CN=boltwatch-daemon",
+            "-keyout",
+            "daemon-key.pem",
+            "-out",
+            "daemon.csr",
+        ],
+        &[
+            "x509",
+            "-req",
+            "-in",
+            "daemon.csr",
+            "-CA",
+            "ca.pem",
+            "-CAkey",
+            "ca-key.pem",
+            "-CAcreateserial",
+            "-days",
+            "2",
+            "-extfile",
+            "server.ext",
+            "-out",
+            "daemon.pem",
+        ],
+    ];
+    for args in steps {
+        let o = Command::new("openssl")
+            .args(args)
+            .current_dir(&tls)
+            .output()
+            .expect("the openssl command (Debian package openssl) makes the test certificates");
+        assert!(
+            o.status.success(),
+            "openssl {args:?}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+    }
+}
+
+/// The access-controlled deployment (deploy/zenoh-daemon.json5 and
+/// deploy/zenoh-sensor.json5, with this test's paths, port and passwords): a publisher
+/// without credentials cannot connect, one with credentials but not the sensor's cannot
+/// inject modal data (though it may query the status), and the sensor pipeline can.
+#[test]
+fn access_control_lets_only_the_sensor_publish_modal_data() {
+    let d = tmp_dir("daemon-acl");
+    let rec = d.join("rec.mcap");
+    make_scenario("healthy", 10, 0.5, &rec);
+    make_certs(&d);
+    std::fs::write(
+        d.join("zenoh-users.txt"),
+        "sensor:s3nsor-pass\nviewer:v1ewer-pass\n",
+    )
+    .unwrap();
+    let port = free_port();
+    let endpoint = format!("tls/127.0.0.1:{port}");
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy");
+    let localize = |file: &str, pairs: &[(&str, &str)]| {
+        let mut text = std::fs::read_to_string(root.join(file)).unwrap();
+        let dir = format!("{}/", d.display());
+        for (from, to) in [("/etc/boltwatch/", dir.as_str())].iter().chain(pairs) {
+            assert!(text.contains(from), "{file} has no `{from}`");
+            text = text.replace(from, to);
+        }
+        text
+    };
+    let daemon_cfg = localize("zenoh-daemon.json5", &[("tls/0.0.0.0:7447", &endpoint)]);
+    std::fs::write(d.join("zenoh-daemon.json5"), daemon_cfg).unwrap();
+    let sensor = localize(
+        "zenoh-sensor.json5",
+        &[
+            ("tls/boltwatch-host:7447", &endpoint),
+            ("change-me-sensor", "s3nsor-pass"),
+        ],
+    );
+    let viewer = sensor
+        .replace("user: \"sensor\"", "user: \"viewer\"")
+        .replace("s3nsor-pass", "v1ewer-pass");
+    assert_ne!(viewer, sensor);
+    let anonymous = viewer
+        .lines()
+        .filter(|l| !l.contains("usrpwd"))
+        .collect::<Vec<_>>()
+        .join("\n");
+    for (name, text) in [
+        ("sensor", &sensor),
+        ("viewer", &viewer),
+        ("anonymous", &anonymous),
+    ] {
+        std::fs::write(d.join(format!("{name}.json5")), text).unwrap();
+    }
+    let zenoh = format!(
+        "config_file = \"{}\"",
+        d.join("zenoh-daemon.json5").display()
+    );
+    let mut daemon = Daemon::start_with(&d, &zenoh, endpoint, "", "");
+    let s = client_from(&viewer);
+    let st = wait_status(
+        &s,
+        Duration::from_secs(30),
+        "the daemon to answer the viewer",
+        |_| true,
+    );
+    assert_eq!(st["sets"]["received"], 0);
+    let publish_as = |who: &str| {
+        let mut c = bin();
+        c.arg("publish")
+            .arg(&rec)
+            .arg("--zenoh-config")
+            .arg(d.join(format!("{who}.json5")))
+            .args(["--rate", "0", "--wait", "5"]);
+        c.output().unwrap()
+    };
+    let received = || status(&s).unwrap()["sets"]["received"].as_u64().unwrap();
+
+    // Without credentials: no connection, so no subscriber is ever seen.
+    let o = publish_as("anonymous");
+    assert!(!o.status.success());
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("no subscriber"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    // Valid credentials, but not the sensor's: the puts are denied at the daemon.
+    let o = publish_as("viewer");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    std::thread::sleep(Duration::from_millis(1500));
+    assert_eq!(
+        received(),
+        0,
+        "modal data got in without the sensor's credentials"
+    );
+    // The sensor pipeline.
+    let o = publish_as("sensor");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let st = wait_status(&s, Duration::from_secs(60), "the sensor's 10 sets", |v| {
+        v["sets"]["accepted"] == 10
+    });
+    assert_eq!(st["sets"]["received"], 10);
+    drop(s);
+    assert!(daemon.terminate().success(), "{}", daemon.log());
 }
