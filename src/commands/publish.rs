@@ -102,10 +102,13 @@ pub fn run(args: &PublishArgs) -> Result<()> {
                         break;
                     }
                     if Instant::now() >= deadline {
+                        let how = match &args.zenoh_config {
+                            Some(f) => format!("with the Zenoh configuration {}", f.display()),
+                            None => format!("at {}", args.connect),
+                        };
                         bail!(
-                            "no subscriber on {t} after {} s (is `boltwatch run` up, and reachable at {}?)",
-                            args.wait,
-                            args.connect
+                            "no subscriber on {t} after {} s (is `boltwatch run` up and reachable {how}, and may this client publish there?)",
+                            args.wait
                         );
                     }
                     tokio::time::sleep(Duration::from_millis(50)).await;

@@ -128,7 +128,7 @@ impl RollingLog {
         }
         let f = self.current.as_mut().expect("a log file is open");
         f.w.write(topic, log_time, data)?;
-        let due_size = f.w.written() % SIZE_CHECK_EVERY == 0
+        let due_size = f.w.written().is_multiple_of(SIZE_CHECK_EVERY)
             && std::fs::metadata(f.part()).map_or(0, |m| m.len()) >= self.rotate_bytes;
         if due_size || f.opened.elapsed() >= self.rotate_age {
             self.close_current()?;

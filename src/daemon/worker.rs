@@ -41,7 +41,7 @@ const CROSSCHECK_SHUTDOWN_WAIT: Duration = Duration::from_secs(60);
 
 /// The cross-check thread of one structure: one job at a time, none queued.
 struct CrosscheckLane {
-    jobs: Option<SyncSender<(u64, CrosscheckRequest)>>,
+    jobs: Option<SyncSender<(u64, Box<CrosscheckRequest>)>>,
     results: Receiver<(u64, Value)>,
     running: bool,
     thread: Option<std::thread::JoinHandle<()>>,
@@ -49,7 +49,7 @@ struct CrosscheckLane {
 
 impl CrosscheckLane {
     fn start(model: Model, cfg: CrosscheckConfig, shape_weight: f64) -> Result<Self> {
-        let (jtx, jrx) = mpsc::sync_channel::<(u64, CrosscheckRequest)>(0);
+        let (jtx, jrx) = mpsc::sync_channel::<(u64, Box<CrosscheckRequest>)>(1);
         let (rtx, rrx) = mpsc::channel();
         let thread = std::thread::Builder::new()
             .name(format!("crosscheck-{}", model.name))
@@ -70,7 +70,7 @@ impl CrosscheckLane {
     }
 
     /// Starts a cross-check unless one is running; false if it was skipped.
-    fn submit(&mut self, t: u64, req: CrosscheckRequest) -> bool {
+    fn submit(&mut self, t: u64, req: Box<CrosscheckRequest>) -> bool {
         if self.running {
             return false;
         }
@@ -236,7 +236,7 @@ impl Worker {
                 }
                 Action::Crosscheck(req) => {
                     let t = to_ns(req.set.time)?;
-                    if !self.lane.submit(t, *req) {
+                    if !self.lane.submit(t, req) {
                         tracing::warn!(
                             structure = s,
                             "cross-check skipped: the previous one is still running"

@@ -177,10 +177,15 @@ pub fn client(endpoint: &str) -> zenoh::Session {
     zenoh::open(c).wait().unwrap()
 }
 
-/// The daemon's status reply, if it answers within a second.
+/// The daemon's status reply for lab-frame, if it answers within a second.
 pub fn status(s: &zenoh::Session) -> Option<Value> {
+    status_of(s, "lab-frame")
+}
+
+/// The status reply for `structure`, if the daemon answers within a second.
+pub fn status_of(s: &zenoh::Session, structure: &str) -> Option<Value> {
     let replies = s
-        .get(topic("lab-frame", "status"))
+        .get(topic(structure, "status"))
         .timeout(Duration::from_secs(1))
         .wait()
         .ok()?;
@@ -278,6 +283,15 @@ fn replayed(
         env.iter().map(|(k, v)| (k.to_string(), v.to_string())),
     )
     .unwrap();
+    replayed_with(rec, out, settings)
+}
+
+/// The outputs of `replay` of `rec` with `settings`.
+fn replayed_with(
+    rec: &Path,
+    out: &Path,
+    settings: Settings,
+) -> Vec<boltwatch::io::mcap::RecordedMessage> {
     replay(
         &ReplayOptions {
             recording: rec.to_path_buf(),
@@ -411,8 +425,21 @@ fn malformed_payloads_over_zenoh_are_rejected_and_the_daemon_goes_on() {
     wait_status(&s, Duration::from_secs(30), "the daemon to answer", |_| {
         true
     });
-    let key = topic("lab-frame", "modal");
-    let put = |bytes: Vec<u8>| s.put(&key, bytes).wait().unwrap();
+    // A publisher that blocks rather than drops, once the daemon's subscriber is known.
+    let publisher = s
+        .declare_publisher(topic("lab-frame", "modal"))
+        .congestion_control(zenoh::qos::CongestionControl::Block)
+        .wait()
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while !publisher.matching_status().wait().unwrap().matching() {
+        assert!(
+            Instant::now() < deadline,
+            "the daemon's subscriber never matched"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let put = |bytes: Vec<u8>| publisher.put(bytes).wait().unwrap();
     for (_, m) in &sets[..20] {
         put(m.data.clone());
     }
@@ -748,6 +775,22 @@ fn python_zenoh_client_publishes_and_receives() {
     assert!(daemon.terminate().success());
 }
 
+/// A file of `deploy/` with its `/etc/boltwatch/` paths moved to `dir` and the `pairs`
+/// replaced (each must occur).
+fn localize(dir: &Path, file: &str, pairs: &[(&str, &str)]) -> String {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy");
+    let mut text = std::fs::read_to_string(root.join(file)).unwrap();
+    let dir = format!("{}/", dir.display());
+    for (from, to) in [("/etc/boltwatch/", dir.as_str())].iter().chain(pairs) {
+        if *from == "/etc/boltwatch/" && !text.contains(from) {
+            continue;
+        }
+        assert!(text.contains(from), "{file} has no `{from}`");
+        text = text.replace(from, to);
+    }
+    text
+}
+
 /// A test CA and a server certificate for 127.0.0.1, made with the `openssl` command.
 fn make_certs(dir: &Path) {
     let tls = dir.join("tls");
@@ -839,16 +882,7 @@ fn access_control_lets_only_the_sensor_publish_modal_data() {
     .unwrap();
     let port = free_port();
     let endpoint = format!("tls/127.0.0.1:{port}");
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy");
-    let localize = |file: &str, pairs: &[(&str, &str)]| {
-        let mut text = std::fs::read_to_string(root.join(file)).unwrap();
-        let dir = format!("{}/", d.display());
-        for (from, to) in [("/etc/boltwatch/", dir.as_str())].iter().chain(pairs) {
-            assert!(text.contains(from), "{file} has no `{from}`");
-            text = text.replace(from, to);
-        }
-        text
-    };
+    let localize = |file: &str, pairs: &[(&str, &str)]| localize(&d, file, pairs);
     let daemon_cfg = localize("zenoh-daemon.json5", &[("tls/0.0.0.0:7447", &endpoint)]);
     std::fs::write(d.join("zenoh-daemon.json5"), daemon_cfg).unwrap();
     let sensor = localize(
@@ -922,6 +956,181 @@ fn access_control_lets_only_the_sensor_publish_modal_data() {
         v["sets"]["accepted"] == 10
     });
     assert_eq!(st["sets"]["received"], 10);
+    drop(s);
+    assert!(daemon.terminate().success(), "{}", daemon.log());
+}
+
+/// Many structures over one Zenoh network (deploy/zenohd.json5, a router, here in-process,
+/// and deploy/zenoh-daemon-client.json5): one daemon watches two structures through the
+/// router; the sensor's sets of both are tracked, each by its own tracker, to the
+/// estimates a replay gives; a dashboard user receives them and queries both statuses but
+/// cannot inject modal data.
+#[test]
+fn a_router_carries_two_structures_under_access_control() {
+    let d = tmp_dir("daemon-router");
+    let (lab, cant) = (d.join("lab.mcap"), d.join("cantilever.mcap"));
+    make_scenario("healthy", 20, 1.0, &lab);
+    boltwatch::core::sequential_numerics();
+    scenario(&ScenarioArgs {
+        name: "healthy".into(),
+        model: "config/models/cantilever-case1.toml".into(),
+        sets: 20,
+        days: 1.0,
+        seed: 2,
+        modes: 4,
+        connection: None,
+        at: None,
+        event_day: None,
+        shape_digits: 0,
+        out: cant.clone(),
+    })
+    .unwrap();
+    make_certs(&d);
+    for f in ["daemon.pem", "daemon-key.pem"] {
+        std::fs::copy(
+            d.join("tls").join(f),
+            d.join("tls").join(f.replace("daemon", "router")),
+        )
+        .unwrap();
+    }
+    std::fs::write(
+        d.join("users.txt"),
+        "sensor:s3nsor-pass\nboltwatch:b0lt-pass\ndashboard:d4sh-pass\n",
+    )
+    .unwrap();
+    let endpoint = format!("tls/127.0.0.1:{}", free_port());
+    let zdir = format!("{}/", d.display());
+    let router_cfg = localize(
+        &d,
+        "zenohd.json5",
+        &[("/etc/zenoh/", &zdir), ("tls/0.0.0.0:7447", &endpoint)],
+    );
+    let _router = client_from(&router_cfg);
+    let daemon_cfg = localize(
+        &d,
+        "zenoh-daemon-client.json5",
+        &[
+            ("tls/zenoh-router:7447", &endpoint),
+            ("change-me-boltwatch", "b0lt-pass"),
+        ],
+    );
+    std::fs::write(d.join("zenoh-daemon.json5"), daemon_cfg).unwrap();
+    let sensor = localize(
+        &d,
+        "zenoh-sensor.json5",
+        &[
+            ("tls/boltwatch-host:7447", &endpoint),
+            ("change-me-sensor", "s3nsor-pass"),
+        ],
+    );
+    let dashboard = sensor
+        .replace("user: \"sensor\"", "user: \"dashboard\"")
+        .replace("s3nsor-pass", "d4sh-pass");
+    std::fs::write(d.join("sensor.json5"), &sensor).unwrap();
+    std::fs::write(d.join("dashboard.json5"), &dashboard).unwrap();
+    let structures = "[[structures]]\nname = \"lab-frame\"\nmodel = \"config/models/lab-frame.toml\"\n\n\
+                      [[structures]]\nname = \"cantilever\"\nmodel = \"config/models/cantilever-case1.toml\"\n";
+    let zenoh = format!(
+        "config_file = \"{}\"",
+        d.join("zenoh-daemon.json5").display()
+    );
+    let mut daemon = Daemon::start_with(&d, &zenoh, endpoint, "", structures);
+    let s = client_from(&dashboard);
+    for structure in ["lab-frame", "cantilever"] {
+        let deadline = Instant::now() + Duration::from_secs(30);
+        while status_of(&s, structure).is_none() {
+            assert!(
+                Instant::now() < deadline,
+                "no status of {structure}; log:\n{}",
+                daemon.log()
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+    let subs: Vec<_> = ["lab-frame", "cantilever"]
+        .iter()
+        .map(|st| {
+            s.declare_subscriber(topic(st, "stiffness"))
+                .with(zenoh::handlers::FifoChannel::new(1000))
+                .wait()
+                .unwrap()
+        })
+        .collect();
+    std::thread::sleep(Duration::from_millis(500));
+    let publish_as = |who: &str, rec: &Path| {
+        bin()
+            .arg("publish")
+            .arg(rec)
+            .arg("--zenoh-config")
+            .arg(d.join(format!("{who}.json5")))
+            .args([
+                "--rate",
+                "0",
+                "--wait",
+                if who == "sensor" { "10" } else { "3" },
+            ])
+            .output()
+            .unwrap()
+    };
+    // The router does not even show the dashboard that modal data has subscribers; whether
+    // its publish gives up or not, nothing of it may reach the daemon (checked below).
+    let o = publish_as("dashboard", &lab);
+    println!(
+        "dashboard publishing modal data: {}",
+        String::from_utf8_lossy(if o.status.success() {
+            &o.stdout
+        } else {
+            &o.stderr
+        })
+        .trim()
+    );
+    for rec in [&lab, &cant] {
+        let o = publish_as("sensor", rec);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    for (k, (structure, rec, model)) in [
+        ("lab-frame", &lab, "config/models/lab-frame.toml"),
+        ("cantilever", &cant, "config/models/cantilever-case1.toml"),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let deadline = Instant::now() + Duration::from_secs(60);
+        let st = loop {
+            let st = status_of(&s, structure).unwrap_or_default();
+            if st["sets"]["accepted"] == 20 {
+                break st;
+            }
+            assert!(Instant::now() < deadline, "{structure}: {st:#}");
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        assert_eq!(
+            st["sets"]["received"], 20,
+            "{structure}: only the sensor's sets get in"
+        );
+        let settings = {
+            let mut s = Settings::load_with_env(None, std::iter::empty()).unwrap();
+            s.structures[0].name = structure.to_string();
+            s.structures[0].model = model.into();
+            s
+        };
+        let want: Vec<Value> =
+            replayed_with(rec, &d.join(format!("{structure}.out.mcap")), settings)
+                .iter()
+                .filter(|m| m.topic == topic(structure, "stiffness"))
+                .map(|m| serde_json::from_slice(&m.data).unwrap())
+                .collect();
+        let mut got = Vec::new();
+        while got.len() < 20 {
+            let sample = subs[k]
+                .recv_timeout(Duration::from_secs(10))
+                .unwrap()
+                .unwrap();
+            got.push(serde_json::from_slice::<Value>(&sample.payload().to_bytes()).unwrap());
+        }
+        assert_eq!(got, want, "{structure}");
+    }
+    drop(subs);
     drop(s);
     assert!(daemon.terminate().success(), "{}", daemon.log());
 }
