@@ -1251,3 +1251,41 @@ fn a_slow_crosscheck_never_holds_up_tracking() {
     drop(s);
     assert!(daemon.terminate().success());
 }
+
+/// The deployment's configuration files load as installed (paths moved into a temporary
+/// directory): deploy/boltwatch.toml over the defaults, and every Zenoh file of deploy/.
+#[test]
+fn deployment_files_load() {
+    let d = tmp_dir("daemon-deploy");
+    std::fs::create_dir_all(d.join("models")).unwrap();
+    std::fs::copy(
+        "config/models/lab-frame.toml",
+        d.join("models/lab-frame.toml"),
+    )
+    .unwrap();
+    let state = d.join("state");
+    let toml = localize(
+        &d,
+        "boltwatch.toml",
+        &[("/var/lib/boltwatch", &state.display().to_string())],
+    );
+    std::fs::write(d.join("boltwatch.toml"), toml).unwrap();
+    std::fs::write(
+        d.join("zenoh.json5"),
+        localize(&d, "zenoh-daemon.json5", &[]),
+    )
+    .unwrap();
+    let settings = Settings::load_with_env(Some(&d.join("boltwatch.toml")), std::iter::empty())
+        .unwrap_or_else(|e| panic!("{e:#}"));
+    assert_eq!(settings.daemon.state_dir, state);
+    boltwatch::io::zenoh::session_config(&settings.zenoh).unwrap();
+    for f in [
+        "zenoh-daemon.json5",
+        "zenoh-daemon-client.json5",
+        "zenoh-sensor.json5",
+        "zenohd.json5",
+    ] {
+        let text = localize(&d, f, &[]);
+        zenoh::Config::from_json5(&text).unwrap_or_else(|e| panic!("{f}: {e}"));
+    }
+}
