@@ -2,7 +2,9 @@
 
 use std::process::ExitCode;
 
-use boltwatch::commands::{bayes, modes, publish, replay, report, run, scenario, simulate, update};
+use boltwatch::commands::{
+    bayes, diagnose, modes, publish, replay, report, run, scenario, simulate, update,
+};
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
@@ -26,6 +28,8 @@ enum Command {
     Update(update::UpdateArgs),
     /// The σ_c study of the Bayesian MAP (paper Figs. 5, 7, 15, 18): JSON and an SVG plot.
     SweepSigma(bayes::SweepArgs),
+    /// Find where the model and a modal set disagree, name the missing effect, add it.
+    Diagnose(diagnose::DiagnoseArgs),
     /// Write a synthetic monitoring recording (MCAP): healthy, loosening, sudden or mass.
     Scenario(scenario::ScenarioArgs),
     /// Run the tracker over a recording (MCAP) as fast as possible; outputs into an MCAP file.
@@ -47,6 +51,7 @@ fn main() -> ExitCode {
         Command::Modes(a) => modes::run(a),
         Command::Update(a) => update::run(a),
         Command::SweepSigma(a) => bayes::run_sweep(a),
+        Command::Diagnose(a) => diagnose::run(a),
         Command::Scenario(a) => scenario::run(a),
         Command::Replay(a) => replay::run(a),
         Command::Report(a) => report::run(a),

@@ -1,6 +1,7 @@
 //! The command-line commands (DESIGN §2): file I/O and tables around the pure core.
 
 pub mod bayes;
+pub mod diagnose;
 pub mod modes;
 pub mod publish;
 pub mod replay;
@@ -34,6 +35,13 @@ impl ModelAtTheta {
         let theta = parse_theta(&model, self.theta.as_deref(), "--theta")?;
         Ok((model, theta))
     }
+}
+
+/// Reads a model file without assembling it.
+pub fn load_spec(path: &Path) -> Result<crate::core::model::spec::ModelSpec> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read model file {}", path.display()))?;
+    toml::from_str(&text).with_context(|| format!("model file {}", path.display()))
 }
 
 /// Reads and assembles a model file.

@@ -8,6 +8,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::{ModelAtTheta, write_json};
 use crate::contract::modal_set::{MeasuredMode, ModalSet};
+use crate::core::diagnosis::effects::Injection;
 use crate::core::modal::DenseEigen;
 use crate::core::simulate::{Noise, simulate_modes};
 
@@ -33,13 +34,31 @@ pub struct SimulateArgs {
     /// Time stamp of the set (RFC 3339).
     #[arg(long, default_value = "2026-01-01T00:00:00Z")]
     pub time: String,
+    /// Add an effect the model file lacks, `kind@location=value` (repeatable), e.g.
+    /// `added-mass@J2R=0.5` (kg), `support-flexibility@BL.rz=2e4` (N·m/rad),
+    /// `member-stiffness@C2L=-0.2`, `modulus@global=0.05`, `joint-inertia@J1L=1e-3` (kg·m²).
+    #[arg(long)]
+    pub inject: Vec<String>,
     /// Output file (boltwatch.modal_set.v1).
     #[arg(short, long)]
     pub out: PathBuf,
 }
 
 pub fn run(args: &SimulateArgs) -> Result<()> {
-    let (model, theta) = args.at.load()?;
+    let (model, theta) = if args.inject.is_empty() {
+        args.at.load()?
+    } else {
+        let mut spec = super::load_spec(&args.at.model)?;
+        for s in &args.inject {
+            Injection::parse(s)
+                .and_then(|i| i.apply(&mut spec))
+                .map_err(|e| anyhow::anyhow!("--inject {e}"))?;
+        }
+        let model = crate::core::model::Model::from_spec(&spec)
+            .map_err(|e| anyhow::anyhow!("--inject: the model with the effects added: {e}"))?;
+        let theta = super::parse_theta(&model, args.at.theta.as_deref(), "--theta")?;
+        (model, theta)
+    };
     for (name, v) in [
         ("--freq-cov", args.freq_cov),
         ("--shape-nsd", args.shape_nsd),
@@ -88,14 +107,18 @@ pub fn run(args: &SimulateArgs) -> Result<()> {
             .collect(),
         temperature_c: None,
         source: Some(format!(
-            "boltwatch simulate --theta {} --seed {}{}",
+            "boltwatch simulate --theta {} --seed {}{}{}",
             theta
                 .iter()
                 .map(|v| v.to_string())
                 .collect::<Vec<_>>()
                 .join(","),
             args.seed,
-            if args.noise_free { " --noise-free" } else { "" }
+            if args.noise_free { " --noise-free" } else { "" },
+            args.inject
+                .iter()
+                .map(|i| format!(" --inject {i}"))
+                .collect::<String>()
         )),
     };
     write_json(&args.out, &set.to_json())?;

@@ -2,6 +2,7 @@
 
 #![allow(non_snake_case)]
 
+pub mod diagnosis;
 pub mod modal;
 pub mod model;
 pub mod simulate;

@@ -1,0 +1,444 @@
+//! The catalogue of candidate effects (DESIGN §6, issue 6): physically named enrichments of
+//! a model file, each with one parameter and its unit, scanned over every location where it
+//! can occur.
+//!
+//! An effect works on the model *file* ([`ModelSpec`]): [`Effect::apply`] adds it at a
+//! location with a value, and the enriched file is assembled as any other. So an effect
+//! needs no support in the assembly, the eigen solvers or the sensitivities, and a new
+//! effect type is one more implementation of [`Effect`] in [`catalogue`]: the search does
+//! not change.
+//!
+//! Each effect is applied through an internal coordinate `u` that is 0 for the model as it
+//! is ([`Effect::apply`] with `u = 0` changes nothing) and in which the residual is close to
+//! linear near 0; [`Effect::value`] turns it into the reported value and unit (support
+//! flexibility: `u` is the compliance, the value its stiffness).
+
+use super::DiagnosisError;
+use crate::core::model::spec::{MassSpec, MaterialSpec, ModelSpec, SpringSpec};
+
+/// Which values of the internal coordinate are physical.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Sign {
+    /// `u > 0` only (an added mass, a compliance).
+    Positive,
+    /// Either sign (a stiffness or inertia error).
+    Any,
+}
+
+/// A kind of missing physical effect (module docs).
+pub trait Effect: Send + Sync {
+    /// Contract name (`added-mass`, …).
+    fn kind(&self) -> &'static str;
+    /// Unit of [`Effect::value`].
+    fn unit(&self) -> &'static str;
+    /// Every location of the model where the effect can be added.
+    fn locations(&self, spec: &ModelSpec) -> Vec<String>;
+    /// Adds the effect at `location` with internal coordinate `u`.
+    fn apply(&self, spec: &mut ModelSpec, location: &str, u: f64) -> Result<(), DiagnosisError>;
+    /// A step of `u` that changes the modal data measurably but stays in the linear range
+    /// (finite-difference screening, the scale of the search).
+    fn step(&self, spec: &ModelSpec, location: &str) -> f64;
+    fn sign(&self) -> Sign;
+    /// The reported value for internal coordinate `u`.
+    fn value(&self, u: f64) -> f64 {
+        u
+    }
+    /// The reported standard deviation for `u ± std_u` (first order).
+    fn value_std(&self, u: f64, std_u: f64) -> f64 {
+        let _ = u;
+        std_u
+    }
+    /// The internal coordinate of a reported value (`--inject`).
+    fn coordinate(&self, value: f64) -> f64 {
+        value
+    }
+}
+
+/// Every effect type, in the order candidates are listed.
+pub fn catalogue() -> Vec<Box<dyn Effect>> {
+    vec![
+        Box::new(AddedMass),
+        Box::new(SupportFlexibility),
+        Box::new(MemberStiffness),
+        Box::new(Modulus),
+        Box::new(JointInertia),
+    ]
+}
+
+/// The effect of a contract name.
+pub fn by_kind(kind: &str) -> Option<Box<dyn Effect>> {
+    catalogue().into_iter().find(|e| e.kind() == kind)
+}
+
+fn unknown(location: &str, what: &str) -> DiagnosisError {
+    DiagnosisError::Location(format!("`{location}` is not {what} of the model"))
+}
+
+/// Interior mesh nodes `<member>.<k>`, k = 1 … elements − 1.
+fn interior_nodes(spec: &ModelSpec) -> Vec<String> {
+    spec.members
+        .iter()
+        .flat_map(|m| (1..m.elements).map(move |k| format!("{}.{k}", m.name)))
+        .collect()
+}
+
+/// A point mass (kg) on both translations of a node, joint or interior mesh node.
+pub struct AddedMass;
+
+impl Effect for AddedMass {
+    fn kind(&self) -> &'static str {
+        "added-mass"
+    }
+    fn unit(&self) -> &'static str {
+        "kg"
+    }
+    fn locations(&self, spec: &ModelSpec) -> Vec<String> {
+        let supported: Vec<&str> = spec.supports.iter().map(|s| s.node.as_str()).collect();
+        spec.nodes
+            .iter()
+            .map(|n| n.name.clone())
+            .filter(|n| !supported.contains(&n.as_str()))
+            .chain(interior_nodes(spec))
+            .collect()
+    }
+    fn apply(&self, spec: &mut ModelSpec, location: &str, u: f64) -> Result<(), DiagnosisError> {
+        if !self.locations(spec).iter().any(|l| l == location) {
+            return Err(unknown(location, "a free node or interior mesh node"));
+        }
+        if u != 0.0 {
+            spec.masses.push(MassSpec {
+                at: location.to_string(),
+                mass: u,
+                inertia: 0.0,
+            });
+        }
+        Ok(())
+    }
+    fn step(&self, spec: &ModelSpec, _: &str) -> f64 {
+        // 1 % of the lightest joint; 50 g without joints.
+        let lightest = spec
+            .joints
+            .iter()
+            .map(|j| j.mass)
+            .filter(|&m| m > 0.0)
+            .fold(f64::INFINITY, f64::min);
+        if lightest.is_finite() {
+            0.01 * lightest
+        } else {
+            0.05
+        }
+    }
+    fn sign(&self) -> Sign {
+        Sign::Positive
+    }
+}
+
+/// A fixed DOF of a support (`<node>.<dof>`) that is in fact a spring: internal coordinate
+/// the compliance (1/k), value the stiffness (N·m/rad for `rz`, N/m for `x`, `y`).
+pub struct SupportFlexibility;
+
+impl SupportFlexibility {
+    fn split(location: &str) -> Option<(&str, &str)> {
+        let (node, dof) = location.rsplit_once('.')?;
+        ["x", "y", "rz"].contains(&dof).then_some((node, dof))
+    }
+
+    /// Bending (or axial) stiffness scale of the members at a support node: 4EI/L for
+    /// rotation, 12EI/L³ for translation, the stiffest member.
+    fn member_stiffness(spec: &ModelSpec, node: &str, dof: &str) -> f64 {
+        let pos = |n: &str| {
+            spec.nodes
+                .iter()
+                .find(|p| p.name == n)
+                .map(|p| (p.x, p.y))
+                .unwrap_or((0.0, 0.0))
+        };
+        spec.members
+            .iter()
+            .filter(|m| m.from == node || m.to == node)
+            .filter_map(|m| {
+                let e = spec.materials.iter().find(|x| x.name == m.material)?.E;
+                let i = spec.sections.iter().find(|x| x.name == m.section)?.I;
+                let ((x0, y0), (x1, y1)) = (pos(&m.from), pos(&m.to));
+                let l = ((x1 - x0).powi(2) + (y1 - y0).powi(2)).sqrt().max(1e-9);
+                Some(if dof == "rz" {
+                    4.0 * e * i / l
+                } else {
+                    12.0 * e * i / l.powi(3)
+                })
+            })
+            .fold(0.0, f64::max)
+            .max(1.0)
+    }
+}
+
+impl Effect for SupportFlexibility {
+    fn kind(&self) -> &'static str {
+        "support-flexibility"
+    }
+    fn unit(&self) -> &'static str {
+        "N·m/rad or N/m"
+    }
+    fn locations(&self, spec: &ModelSpec) -> Vec<String> {
+        spec.supports
+            .iter()
+            .flat_map(|s| {
+                let fixed: Vec<String> = s
+                    .fix
+                    .clone()
+                    .unwrap_or_else(|| vec!["x".into(), "y".into(), "rz".into()]);
+                fixed.into_iter().map(move |d| format!("{}.{d}", s.node))
+            })
+            .collect()
+    }
+    fn apply(&self, spec: &mut ModelSpec, location: &str, u: f64) -> Result<(), DiagnosisError> {
+        let (node, dof) =
+            Self::split(location).ok_or_else(|| unknown(location, "a support DOF (`BL.rz`)"))?;
+        let s = spec
+            .supports
+            .iter_mut()
+            .find(|s| s.node == node)
+            .ok_or_else(|| unknown(location, "a support DOF"))?;
+        let mut fixed = s
+            .fix
+            .clone()
+            .unwrap_or_else(|| vec!["x".into(), "y".into(), "rz".into()]);
+        if !fixed.iter().any(|d| d == dof) {
+            return Err(unknown(location, "a fixed support DOF"));
+        }
+        if u <= 0.0 {
+            return Ok(());
+        }
+        fixed.retain(|d| d != dof);
+        s.fix = Some(fixed);
+        spec.springs.push(SpringSpec {
+            name: format!("support-flexibility@{location}"),
+            a: node.to_string(),
+            b: None,
+            dof: dof.to_string(),
+            k: 1.0 / u,
+        });
+        Ok(())
+    }
+    fn step(&self, spec: &ModelSpec, location: &str) -> f64 {
+        let (node, dof) = Self::split(location).unwrap_or(("", "rz"));
+        // A spring 100 times stiffer than the members at the support.
+        1.0 / (100.0 * Self::member_stiffness(spec, node, dof))
+    }
+    fn sign(&self) -> Sign {
+        Sign::Positive
+    }
+    fn value(&self, u: f64) -> f64 {
+        1.0 / u
+    }
+    fn value_std(&self, u: f64, std_u: f64) -> f64 {
+        std_u / (u * u)
+    }
+    fn coordinate(&self, value: f64) -> f64 {
+        1.0 / value
+    }
+}
+
+/// Adds `material` scaled by `factor` (E only) as a new material and returns its name.
+fn scaled_material(spec: &mut ModelSpec, material: &str, factor: f64, tag: &str) -> Option<String> {
+    let base = spec.materials.iter().find(|m| m.name == material)?.clone();
+    let name = format!("{}*{tag}", base.name);
+    spec.materials.push(MaterialSpec {
+        name: name.clone(),
+        E: base.E * factor,
+        rho: base.rho,
+    });
+    Some(name)
+}
+
+/// A change of one member's bending stiffness EI, relative (0.1: 10 % stiffer).
+pub struct MemberStiffness;
+
+impl Effect for MemberStiffness {
+    fn kind(&self) -> &'static str {
+        "member-stiffness"
+    }
+    fn unit(&self) -> &'static str {
+        "relative"
+    }
+    fn locations(&self, spec: &ModelSpec) -> Vec<String> {
+        spec.members.iter().map(|m| m.name.clone()).collect()
+    }
+    fn apply(&self, spec: &mut ModelSpec, location: &str, u: f64) -> Result<(), DiagnosisError> {
+        let k = spec
+            .members
+            .iter()
+            .position(|m| m.name == location)
+            .ok_or_else(|| unknown(location, "a member"))?;
+        if u <= -1.0 {
+            return Err(DiagnosisError::Location(format!(
+                "member-stiffness@{location} = {u}: EI would not be positive"
+            )));
+        }
+        if u != 0.0 {
+            let material = spec.members[k].material.clone();
+            let name = scaled_material(spec, &material, 1.0 + u, location)
+                .ok_or_else(|| unknown(&material, "a material"))?;
+            spec.members[k].material = name;
+        }
+        Ok(())
+    }
+    fn step(&self, _: &ModelSpec, _: &str) -> f64 {
+        0.02
+    }
+    fn sign(&self) -> Sign {
+        Sign::Any
+    }
+}
+
+/// A change of Young's modulus of every member (temperature), relative. Not a candidate
+/// when a parameter of the model already scales the modulus of every member.
+pub struct Modulus;
+
+impl Effect for Modulus {
+    fn kind(&self) -> &'static str {
+        "modulus"
+    }
+    fn unit(&self) -> &'static str {
+        "relative"
+    }
+    fn locations(&self, spec: &ModelSpec) -> Vec<String> {
+        let covered = spec.parameters.iter().any(|p| {
+            !p.members.is_empty() && spec.members.iter().all(|m| p.members.contains(&m.name))
+        });
+        if covered {
+            Vec::new()
+        } else {
+            vec!["global".to_string()]
+        }
+    }
+    fn apply(&self, spec: &mut ModelSpec, location: &str, u: f64) -> Result<(), DiagnosisError> {
+        if location != "global" {
+            return Err(unknown(
+                location,
+                "`global` (the modulus effect's location)",
+            ));
+        }
+        if u <= -1.0 {
+            return Err(DiagnosisError::Location(format!(
+                "modulus = {u}: E would not be positive"
+            )));
+        }
+        if u != 0.0 {
+            for m in spec.materials.iter_mut() {
+                m.E *= 1.0 + u;
+            }
+        }
+        Ok(())
+    }
+    fn step(&self, _: &ModelSpec, _: &str) -> f64 {
+        0.01
+    }
+    fn sign(&self) -> Sign {
+        Sign::Any
+    }
+}
+
+/// An error of a rigid joint's rotary inertia (kg·m²), either sign.
+pub struct JointInertia;
+
+impl Effect for JointInertia {
+    fn kind(&self) -> &'static str {
+        "joint-inertia"
+    }
+    fn unit(&self) -> &'static str {
+        "kg·m²"
+    }
+    fn locations(&self, spec: &ModelSpec) -> Vec<String> {
+        spec.joints.iter().map(|j| j.node.clone()).collect()
+    }
+    fn apply(&self, spec: &mut ModelSpec, location: &str, u: f64) -> Result<(), DiagnosisError> {
+        let j = spec
+            .joints
+            .iter_mut()
+            .find(|j| j.node == location)
+            .ok_or_else(|| unknown(location, "a joint"))?;
+        if j.inertia + u <= 0.0 {
+            return Err(DiagnosisError::Location(format!(
+                "joint-inertia@{location} = {u}: the joint's inertia would not be positive"
+            )));
+        }
+        j.inertia += u;
+        Ok(())
+    }
+    fn step(&self, spec: &ModelSpec, location: &str) -> f64 {
+        spec.joints
+            .iter()
+            .find(|j| j.node == location)
+            .map_or(1e-4, |j| (0.1 * j.inertia).max(1e-6))
+    }
+    fn sign(&self) -> Sign {
+        Sign::Any
+    }
+}
+
+/// An effect added to a model file: `kind@location=value` (`added-mass@J2R=0.5`), the
+/// value in the effect's unit.
+pub struct Injection {
+    pub effect: Box<dyn Effect>,
+    pub location: String,
+    pub value: f64,
+}
+
+impl Injection {
+    /// Parses `kind@location=value`.
+    pub fn parse(s: &str) -> Result<Self, DiagnosisError> {
+        let bad = |why: &str| {
+            DiagnosisError::Location(format!(
+                "`{s}`: {why} (expected kind@location=value, e.g. added-mass@J2R=0.5)"
+            ))
+        };
+        let (kind, rest) = s.split_once('@').ok_or_else(|| bad("no `@`"))?;
+        let (location, value) = rest.split_once('=').ok_or_else(|| bad("no `=`"))?;
+        let effect = by_kind(kind).ok_or_else(|| {
+            bad(&format!(
+                "unknown effect; known: {}",
+                catalogue()
+                    .iter()
+                    .map(|e| e.kind())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ))
+        })?;
+        let value: f64 = value
+            .trim()
+            .parse()
+            .map_err(|_| bad("the value is not a number"))?;
+        if !value.is_finite() {
+            return Err(bad("the value is not finite"));
+        }
+        Ok(Self {
+            effect,
+            location: location.to_string(),
+            value,
+        })
+    }
+
+    /// Adds the effect to `spec`.
+    pub fn apply(&self, spec: &mut ModelSpec) -> Result<(), DiagnosisError> {
+        if self.effect.sign() == Sign::Positive && self.value <= 0.0 {
+            return Err(DiagnosisError::Location(format!(
+                "{}@{} = {}: must be > 0",
+                self.effect.kind(),
+                self.location,
+                self.value
+            )));
+        }
+        let known = self.effect.locations(spec);
+        if !known.iter().any(|l| *l == self.location) {
+            return Err(DiagnosisError::Location(format!(
+                "{}@{}: not a location of this effect in the model (e.g. {})",
+                self.effect.kind(),
+                self.location,
+                known.iter().take(6).cloned().collect::<Vec<_>>().join(", ")
+            )));
+        }
+        self.effect
+            .apply(spec, &self.location, self.effect.coordinate(self.value))
+    }
+}

@@ -1,0 +1,614 @@
+//! The discrepancy workflow (DESIGN §6, issue 6): find where the model and a modal set
+//! disagree, name the missing physical effect, add it, and show the gap shrink.
+//!
+//! One round:
+//! 1. **Fit** the model class as it is (mode matching, globalized the first time) and
+//!    **localize** the disagreement ([`Localization`]): per-mode frequency error in units of
+//!    its σ, MAC per mode, per-channel shape residual.
+//! 2. **Screen** every candidate of the [`effects::catalogue`] at every location. A
+//!    candidate's residual column `g = ∂r/∂u` (finite difference at `u = 0`, at the fitted θ)
+//!    is projected off the span of the model's own Jacobian `J`; the reduction of ε that the
+//!    one extra parameter explains to first order is `(g⊥ᵀr)² / g⊥ᵀg⊥` (the score). A bolt
+//!    stiffness change is inside the model class and so explains nothing here.
+//! 3. **Refit** the best few with the full nonlinear update: ε is minimized over the effect's
+//!    value with θ refitted at every value (the profile `ε(u) = min_θ ε(θ, u)`, by a bracketed
+//!    golden-section search), and its standard deviation is the Laplace one, `σ_u² = 2/ε''`
+//!    (ε is −2 log L up to a constant).
+//! 4. **Decide** by a likelihood-ratio test: `Λ = ε_before − ε_after` is χ²₁ under "no missing
+//!    effect"; the best refit is named when Λ exceeds the χ²₁ quantile at family-wise level α
+//!    over all candidates screened (Bonferroni). The BIC approximation of the log Bayes factor,
+//!    `Λ/2 − ½ ln N`, is reported beside it.
+//! 5. A named effect is added to the model (at its fitted value) and the next round starts;
+//!    the workflow stops when nothing is significant.
+
+pub mod effects;
+
+use faer::Mat;
+
+use crate::core::model::Model;
+use crate::core::model::spec::ModelSpec;
+use crate::core::updating::{
+    Evaluation, Evaluator, FinalStep, MeasuredData, ModeMatching, ModeMatchingOptions,
+    ModeMatchingResult, StepControl,
+};
+use effects::{Effect, Sign};
+
+/// Failures of a diagnosis.
+#[derive(Debug, thiserror::Error)]
+pub enum DiagnosisError {
+    #[error("{0}")]
+    Location(String),
+    #[error("the model with {what} does not assemble: {reason}")]
+    Model { what: String, reason: String },
+    #[error("updating failed: {0}")]
+    Update(String),
+}
+
+/// Options of [`diagnose`].
+#[derive(Debug, Clone)]
+pub struct DiagnosisOptions {
+    /// Family-wise significance level of the likelihood-ratio test over all candidates.
+    pub alpha: f64,
+    /// Candidates refitted per round.
+    pub refits: usize,
+    /// Rounds (effects named) at most.
+    pub max_effects: usize,
+}
+
+impl Default for DiagnosisOptions {
+    fn default() -> Self {
+        Self {
+            alpha: 1e-3,
+            refits: 4,
+            max_effects: 4,
+        }
+    }
+}
+
+/// Where the fitted model and the data disagree.
+#[derive(Debug, Clone)]
+pub struct Localization {
+    pub epsilon: f64,
+    pub theta: Vec<f64>,
+    pub modes: Vec<ModeMisfit>,
+    /// Per model channel: name, Σ over modes of the squared whitened shape residual, and
+    /// the number of mode-shape entries measured there.
+    pub channels: Vec<(String, f64, usize)>,
+}
+
+/// One measured mode against its paired model mode.
+#[derive(Debug, Clone)]
+pub struct ModeMisfit {
+    pub measured_hz: f64,
+    pub model_hz: f64,
+    /// (measured − model eigenvalue) / σ_λ: the frequency error in units of its σ.
+    pub error_sigma: f64,
+    pub mac: f64,
+    /// 1-based.
+    pub paired_with: usize,
+}
+
+/// A screened candidate.
+#[derive(Debug, Clone)]
+pub struct Candidate {
+    pub effect: &'static str,
+    pub location: String,
+    /// ε reduction explained to first order beyond the model's own parameters.
+    pub score: f64,
+    /// The first-order value of the internal coordinate.
+    pub u_linear: f64,
+}
+
+/// A refitted candidate.
+#[derive(Debug, Clone)]
+pub struct Refit {
+    pub effect: &'static str,
+    pub unit: &'static str,
+    pub location: String,
+    pub u: f64,
+    pub std_u: f64,
+    pub value: f64,
+    pub std: f64,
+    pub epsilon: f64,
+    pub theta: Vec<f64>,
+}
+
+/// An effect the workflow named.
+#[derive(Debug, Clone)]
+pub struct Named {
+    pub refit: Refit,
+    pub epsilon_before: f64,
+    pub likelihood_ratio: f64,
+    pub threshold: f64,
+    pub log_bayes_factor: f64,
+}
+
+/// One round of the workflow.
+#[derive(Debug, Clone)]
+pub struct Round {
+    pub epsilon: f64,
+    pub candidates: Vec<Candidate>,
+    pub refits: Vec<Refit>,
+    pub named: Option<Named>,
+}
+
+/// The outcome of [`diagnose`].
+#[derive(Debug, Clone)]
+pub struct Diagnosis {
+    pub before: Localization,
+    pub after: Localization,
+    pub named: Vec<Named>,
+    pub rounds: Vec<Round>,
+    pub n_candidates: usize,
+    /// The likelihood-ratio threshold of the test.
+    pub threshold: f64,
+    pub alpha: f64,
+    /// The model file with every named effect added.
+    pub enriched: ModelSpec,
+}
+
+/// A fitted model class.
+struct Fit {
+    model: Model,
+    result: ModeMatchingResult,
+}
+
+fn mm_options() -> ModeMatchingOptions {
+    ModeMatchingOptions {
+        step: StepControl::LevenbergMarquardt,
+        tol: 1e-6,
+        max_iterations: 100,
+        final_step: FinalStep::Evaluate,
+        sigma_tol: Some(0.01),
+    }
+}
+
+fn build(spec: &ModelSpec, what: impl FnOnce() -> String) -> Result<Model, DiagnosisError> {
+    Model::from_spec(spec).map_err(|e| DiagnosisError::Model {
+        what: what(),
+        reason: e.to_string(),
+    })
+}
+
+/// Fits `spec` to `data` from `theta0` (globalized if `global`).
+fn fit(
+    spec: &ModelSpec,
+    data: &MeasuredData,
+    theta0: &[f64],
+    global: bool,
+) -> Result<Fit, DiagnosisError> {
+    let model = build(spec, || "the effects named so far".into())?;
+    let ev = Evaluator::new(&model).map_err(|e| DiagnosisError::Update(e.to_string()))?;
+    let mut mm = ModeMatching::new(ev);
+    let opts = mm_options();
+    let result = if global {
+        mm.run_global(&model, data, theta0, &opts).map(|r| r.0)
+    } else {
+        mm.run(&model, data, theta0, &opts)
+    }
+    .map_err(|e| DiagnosisError::Update(e.to_string()))?;
+    Ok(Fit { model, result })
+}
+
+/// ε at the profile point `u` of an effect: θ refitted from `theta0`; +∞ when the
+/// enriched model cannot be built or fitted.
+fn profile_point(
+    spec: &ModelSpec,
+    effect: &dyn Effect,
+    location: &str,
+    u: f64,
+    data: &MeasuredData,
+    theta0: &[f64],
+) -> (f64, Vec<f64>) {
+    let mut s = spec.clone();
+    if effect.apply(&mut s, location, u).is_err() {
+        return (f64::INFINITY, theta0.to_vec());
+    }
+    match fit(&s, data, theta0, false) {
+        Ok(f) if f.result.epsilon().is_finite() => (f.result.epsilon(), f.result.theta),
+        _ => (f64::INFINITY, theta0.to_vec()),
+    }
+}
+
+/// The misfit of a fitted model, per mode and per channel.
+fn localize(model: &Model, data: &MeasuredData, ev: &Evaluation) -> Localization {
+    let channels = model.channels();
+    let mut per_channel: Vec<(String, f64, usize)> =
+        channels.iter().map(|c| (c.name.clone(), 0.0, 0)).collect();
+    let mut modes = Vec::new();
+    let mut at = 0;
+    for (m, mode) in data.modes.iter().enumerate() {
+        let k = ev.pairing[m];
+        modes.push(ModeMisfit {
+            measured_hz: mode.lambda.sqrt() / (2.0 * std::f64::consts::PI),
+            model_hz: ev.eig.frequency_hz(k),
+            error_sigma: ev.r[at],
+            mac: ev.mac[m],
+            paired_with: k + 1,
+        });
+        at += 1;
+        if let Some(s) = &mode.shape {
+            for &c in &s.channels {
+                per_channel[c].1 += ev.r[at] * ev.r[at];
+                per_channel[c].2 += 1;
+                at += 1;
+            }
+        }
+    }
+    Localization {
+        epsilon: ev.epsilon,
+        theta: ev.theta.clone(),
+        modes,
+        channels: per_channel,
+    }
+}
+
+/// χ²₁ quantile at upper-tail probability `p`: `z²` with `z = Φ⁻¹(1 − p/2)`.
+pub fn chi2_1_upper_quantile(p: f64) -> f64 {
+    let z = inverse_normal_cdf(1.0 - p / 2.0);
+    z * z
+}
+
+/// Φ⁻¹ by P. J. Acklam's rational approximation (relative error < 1.2e-9 on (0, 1)).
+pub fn inverse_normal_cdf(p: f64) -> f64 {
+    const A: [f64; 6] = [
+        -3.969_683_028_665_376e1,
+        2.209_460_984_245_205e2,
+        -2.759_285_104_469_687e2,
+        1.383_577_518_672_69e2,
+        -3.066_479_806_614_716e1,
+        2.506_628_277_459_239,
+    ];
+    const B: [f64; 5] = [
+        -5.447_609_879_822_406e1,
+        1.615_858_368_580_409e2,
+        -1.556_989_798_598_866e2,
+        6.680_131_188_771_972e1,
+        -1.328_068_155_288_572e1,
+    ];
+    const C: [f64; 6] = [
+        -7.784_894_002_430_293e-3,
+        -3.223_964_580_411_365e-1,
+        -2.400_758_277_161_838,
+        -2.549_732_539_343_734,
+        4.374_664_141_464_968,
+        2.938_163_982_698_783,
+    ];
+    const D: [f64; 4] = [
+        7.784_695_709_041_462e-3,
+        3.224_671_290_700_398e-1,
+        2.445_134_137_142_996,
+        3.754_408_661_907_416,
+    ];
+    const LOW: f64 = 0.02425;
+    if p <= 0.0 {
+        return f64::NEG_INFINITY;
+    }
+    if p >= 1.0 {
+        return f64::INFINITY;
+    }
+    let tail = |q: f64| {
+        (((((C[0] * q + C[1]) * q + C[2]) * q + C[3]) * q + C[4]) * q + C[5])
+            / ((((D[0] * q + D[1]) * q + D[2]) * q + D[3]) * q + 1.0)
+    };
+    if p < LOW {
+        tail((-2.0 * p.ln()).sqrt())
+    } else if p > 1.0 - LOW {
+        -tail((-2.0 * (1.0 - p).ln()).sqrt())
+    } else {
+        let q = p - 0.5;
+        let r = q * q;
+        (((((A[0] * r + A[1]) * r + A[2]) * r + A[3]) * r + A[4]) * r + A[5]) * q
+            / (((((B[0] * r + B[1]) * r + B[2]) * r + B[3]) * r + B[4]) * r + 1.0)
+    }
+}
+
+/// Every (effect, location) of `spec`, minus those already named.
+fn candidates_of<'a>(
+    effects: &'a [Box<dyn Effect>],
+    spec: &ModelSpec,
+    named: &[Named],
+) -> Vec<(&'a dyn Effect, String)> {
+    effects
+        .iter()
+        .flat_map(|e| e.locations(spec).into_iter().map(move |l| (e.as_ref(), l)))
+        .filter(|(e, l)| {
+            !named
+                .iter()
+                .any(|n| n.refit.effect == e.kind() && n.refit.location == *l)
+        })
+        .collect()
+}
+
+/// Screens one candidate (module docs, step 2); `None` when its finite difference changed
+/// the mode pairing or the model would not build.
+fn screen(
+    spec: &ModelSpec,
+    effect: &dyn Effect,
+    location: &str,
+    data: &MeasuredData,
+    base: &Evaluation,
+    q: &Mat<f64>,
+) -> Option<Candidate> {
+    let h = effect.step(spec, location);
+    let mut s = spec.clone();
+    effect.apply(&mut s, location, h).ok()?;
+    let model = Model::from_spec(&s).ok()?;
+    let mut ev = Evaluator::new(&model).ok()?;
+    let e = ev.evaluate(&model, data, &base.theta).ok()?;
+    if e.pairing != base.pairing || e.r.len() != base.r.len() {
+        return None;
+    }
+    let mut g: Vec<f64> = e.r.iter().zip(&base.r).map(|(a, b)| (a - b) / h).collect();
+    // g⊥ = g − Q Qᵀ g.
+    for j in 0..q.ncols() {
+        let c: f64 = (0..g.len()).map(|i| q[(i, j)] * g[i]).sum();
+        for (i, gi) in g.iter_mut().enumerate() {
+            *gi -= c * q[(i, j)];
+        }
+    }
+    let gg: f64 = g.iter().map(|v| v * v).sum();
+    let gr: f64 = g.iter().zip(&base.r).map(|(a, b)| a * b).sum();
+    if !(gg > 0.0) || !gr.is_finite() {
+        return None;
+    }
+    let u_linear = -gr / gg;
+    let score = if effect.sign() == Sign::Positive && u_linear <= 0.0 {
+        0.0
+    } else {
+        gr * gr / gg
+    };
+    Some(Candidate {
+        effect: effect.kind(),
+        location: location.to_string(),
+        score,
+        u_linear,
+    })
+}
+
+/// Minimizes `f` over `t` from `t0` with initial step `d`: a downhill bracket, then a
+/// golden-section search to `tol`. Returns the minimizer and the minimum.
+fn minimize_1d(mut f: impl FnMut(f64) -> f64, t0: f64, d: f64, tol: f64) -> (f64, f64) {
+    const GOLD: f64 = 1.618_033_988_749_895;
+    let f0 = f(t0);
+    let (mut a, mut fa) = (t0, f0);
+    let (mut b, mut fb) = (t0 + d, f(t0 + d));
+    if fb > fa {
+        let (c, fc) = (t0 - d, f(t0 - d));
+        if fc >= fa {
+            return golden(&mut f, t0 - d, t0 + d, (t0, f0), tol);
+        }
+        (b, fb) = (c, fc);
+    }
+    // Downhill from a through b: expand until the function rises.
+    for _ in 0..12 {
+        let c = b + GOLD * (b - a);
+        let fc = f(c);
+        if fc >= fb {
+            let (lo, hi) = if a < c { (a, c) } else { (c, a) };
+            return golden(&mut f, lo, hi, (b, fb), tol);
+        }
+        (a, fa) = (b, fb);
+        (b, fb) = (c, fc);
+    }
+    let _ = fa;
+    (b, fb)
+}
+
+/// Golden-section search on [lo, hi] with a known interior point.
+fn golden(
+    f: &mut impl FnMut(f64) -> f64,
+    mut lo: f64,
+    mut hi: f64,
+    best: (f64, f64),
+    tol: f64,
+) -> (f64, f64) {
+    const R: f64 = 0.381_966_011_250_105;
+    let mut best = best;
+    let (mut x1, mut x2) = (lo + R * (hi - lo), hi - R * (hi - lo));
+    let (mut f1, mut f2) = (f(x1), f(x2));
+    for (x, fx) in [(x1, f1), (x2, f2)] {
+        if fx < best.1 {
+            best = (x, fx);
+        }
+    }
+    for _ in 0..40 {
+        if hi - lo < tol {
+            break;
+        }
+        if f1 < f2 {
+            hi = x2;
+            (x2, f2) = (x1, f1);
+            x1 = lo + R * (hi - lo);
+            f1 = f(x1);
+            if f1 < best.1 {
+                best = (x1, f1);
+            }
+        } else {
+            lo = x1;
+            (x1, f1) = (x2, f2);
+            x2 = hi - R * (hi - lo);
+            f2 = f(x2);
+            if f2 < best.1 {
+                best = (x2, f2);
+            }
+        }
+    }
+    best
+}
+
+/// The full nonlinear refit of one candidate (module docs, step 3).
+fn refit(
+    spec: &ModelSpec,
+    effect: &dyn Effect,
+    c: &Candidate,
+    data: &MeasuredData,
+    theta0: &[f64],
+) -> Option<Refit> {
+    let h = effect.step(spec, &c.location);
+    // The search coordinate: ln u for effects of one sign, u / h otherwise.
+    let (t0, d, to_u): (f64, f64, Box<dyn Fn(f64) -> f64>) = match effect.sign() {
+        Sign::Positive => (c.u_linear.max(h * 1e-3).ln(), 0.7, Box::new(f64::exp)),
+        Sign::Any => (
+            c.u_linear / h,
+            (c.u_linear.abs() / h / 2.0).max(1.0),
+            Box::new(move |t| t * h),
+        ),
+    };
+    let eps_at = |u: f64| profile_point(spec, effect, &c.location, u, data, theta0);
+    let (t, eps) = minimize_1d(|t| eps_at(to_u(t)).0, t0, d, 2e-3);
+    if !eps.is_finite() {
+        return None;
+    }
+    let u = to_u(t);
+    let (_, theta) = eps_at(u);
+    // Laplace: σ_u² = 2 / ε''(u), by a three-point difference around the minimum.
+    let du = match effect.sign() {
+        Sign::Positive => 0.05 * u,
+        Sign::Any => 0.05 * u.abs().max(h),
+    };
+    let (em, ep) = (eps_at(u - du).0, eps_at(u + du).0);
+    let curvature = (ep - 2.0 * eps + em) / (du * du);
+    let std_u = if curvature > 0.0 {
+        (2.0 / curvature).sqrt()
+    } else {
+        f64::NAN
+    };
+    Some(Refit {
+        effect: effect.kind(),
+        unit: effect.unit(),
+        location: c.location.clone(),
+        u,
+        std_u,
+        value: effect.value(u),
+        std: effect.value_std(u, std_u),
+        epsilon: eps,
+        theta,
+    })
+}
+
+/// Runs the workflow (module docs) on `spec` and `data`. `progress(stage, done, total)` is
+/// called as candidates are screened and refitted.
+pub fn diagnose(
+    spec: &ModelSpec,
+    data: &MeasuredData,
+    opts: &DiagnosisOptions,
+    mut progress: impl FnMut(&str, usize, usize),
+) -> Result<Diagnosis, DiagnosisError> {
+    let effects = effects::catalogue();
+    let nominal = build(spec, || "no effect added".into())?;
+    let mut current = spec.clone();
+    let mut f = fit(&current, data, &nominal.nominal_theta(), true)?;
+    let before = localize(&f.model, data, &f.result.last);
+    let n_candidates = candidates_of(&effects, spec, &[]).len();
+    let threshold = chi2_1_upper_quantile(opts.alpha / n_candidates.max(1) as f64);
+    let n_data = data.n_data() as f64;
+    let mut named: Vec<Named> = Vec::new();
+    let mut rounds = Vec::new();
+    loop {
+        let base = f.result.last.clone();
+        let mut ev = Evaluator::new(&f.model).map_err(|e| DiagnosisError::Update(e.to_string()))?;
+        let j = ev
+            .jacobian(&f.model, data, &base)
+            .map_err(|e| DiagnosisError::Update(e.to_string()))?;
+        let q = j.qr().compute_thin_Q();
+        let cands = candidates_of(&effects, &current, &named);
+        let total = cands.len();
+        let mut screened: Vec<Candidate> = Vec::with_capacity(total);
+        for (k, (e, l)) in cands.iter().enumerate() {
+            if let Some(c) = screen(&current, *e, l, data, &base, &q) {
+                screened.push(c);
+            }
+            progress("screening", k + 1, total);
+        }
+        screened.sort_by(|a, b| b.score.total_cmp(&a.score));
+        let best: Vec<&Candidate> = screened
+            .iter()
+            .filter(|c| c.score > 0.0)
+            .take(opts.refits)
+            .collect();
+        let mut refits = Vec::new();
+        for (k, c) in best.iter().enumerate() {
+            let e = effects
+                .iter()
+                .find(|e| e.kind() == c.effect)
+                .expect("a screened effect is in the catalogue");
+            if let Some(r) = refit(&current, e.as_ref(), c, data, &base.theta) {
+                refits.push(r);
+            }
+            progress("refitting", k + 1, best.len());
+        }
+        refits.sort_by(|a, b| a.epsilon.total_cmp(&b.epsilon));
+        let eps_before = f.result.epsilon();
+        let winner = refits.first().and_then(|r| {
+            let lr = eps_before - r.epsilon;
+            (lr > threshold).then(|| Named {
+                refit: r.clone(),
+                epsilon_before: eps_before,
+                likelihood_ratio: lr,
+                threshold,
+                log_bayes_factor: lr / 2.0 - 0.5 * n_data.ln(),
+            })
+        });
+        rounds.push(Round {
+            epsilon: eps_before,
+            candidates: screened,
+            refits,
+            named: winner.clone(),
+        });
+        let Some(w) = winner else { break };
+        let e = effects
+            .iter()
+            .find(|e| e.kind() == w.refit.effect)
+            .expect("a named effect is in the catalogue");
+        e.apply(&mut current, &w.refit.location, w.refit.u)?;
+        let theta = w.refit.theta.clone();
+        named.push(w);
+        f = fit(&current, data, &theta, false)?;
+        if named.len() >= opts.max_effects {
+            break;
+        }
+    }
+    let after = localize(&f.model, data, &f.result.last);
+    Ok(Diagnosis {
+        before,
+        after,
+        named,
+        rounds,
+        n_candidates,
+        threshold,
+        alpha: opts.alpha,
+        enriched: current,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Φ⁻¹ inverts Φ (the tracker's A&S erfc, |error| < 1.5e-7) and matches known quantiles.
+    #[test]
+    fn inverse_normal_cdf_inverts_the_cdf() {
+        assert!((inverse_normal_cdf(0.975) - 1.959_963_985).abs() < 1e-8);
+        assert!((inverse_normal_cdf(0.5)).abs() < 1e-12);
+        assert!((inverse_normal_cdf(1e-6) + 4.753_424_309).abs() < 1e-7);
+        for p in [1e-9, 1e-4, 0.01, 0.3, 0.7, 0.99, 0.999_99] {
+            let z = inverse_normal_cdf(p);
+            let back = crate::pipeline::alerts::normal_cdf(z);
+            assert!((back - p).abs() < 2e-7, "p {p}: Φ(Φ⁻¹(p)) = {back}");
+        }
+        // χ²₁ at 5 %: 3.841.
+        assert!((chi2_1_upper_quantile(0.05) - 3.841_458_821).abs() < 1e-7);
+    }
+
+    /// The 1-D search finds the minimum of a parabola from either side and of a function
+    /// whose minimum is at the start.
+    #[test]
+    fn minimize_1d_finds_minima() {
+        for (t0, d) in [(0.0, 1.0), (10.0, 1.0), (3.0, 0.1), (-5.0, 2.0)] {
+            let (t, v) = minimize_1d(|t| (t - 3.0) * (t - 3.0) + 1.0, t0, d, 1e-6);
+            assert!((t - 3.0).abs() < 1e-5, "from {t0}: {t}");
+            assert!((v - 1.0).abs() < 1e-9);
+        }
+    }
+}
