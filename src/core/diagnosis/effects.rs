@@ -29,8 +29,8 @@ pub enum Sign {
 pub trait Effect: Send + Sync {
     /// Contract name (`added-mass`, …).
     fn kind(&self) -> &'static str;
-    /// Unit of [`Effect::value`].
-    fn unit(&self) -> &'static str;
+    /// Unit of [`Effect::value`] at `location`.
+    fn unit(&self, location: &str) -> &'static str;
     /// Every location of the model where the effect can be added.
     fn locations(&self, spec: &ModelSpec) -> Vec<String>;
     /// Adds the effect at `location` with internal coordinate `u`.
@@ -89,7 +89,7 @@ impl Effect for AddedMass {
     fn kind(&self) -> &'static str {
         "added-mass"
     }
-    fn unit(&self) -> &'static str {
+    fn unit(&self, _: &str) -> &'static str {
         "kg"
     }
     fn locations(&self, spec: &ModelSpec) -> Vec<String> {
@@ -176,8 +176,12 @@ impl Effect for SupportFlexibility {
     fn kind(&self) -> &'static str {
         "support-flexibility"
     }
-    fn unit(&self) -> &'static str {
-        "N·m/rad or N/m"
+    fn unit(&self, location: &str) -> &'static str {
+        if location.ends_with(".rz") {
+            "N·m/rad"
+        } else {
+            "N/m"
+        }
     }
     fn locations(&self, spec: &ModelSpec) -> Vec<String> {
         spec.supports
@@ -258,7 +262,7 @@ impl Effect for MemberStiffness {
     fn kind(&self) -> &'static str {
         "member-stiffness"
     }
-    fn unit(&self) -> &'static str {
+    fn unit(&self, _: &str) -> &'static str {
         "relative"
     }
     fn locations(&self, spec: &ModelSpec) -> Vec<String> {
@@ -299,7 +303,7 @@ impl Effect for Modulus {
     fn kind(&self) -> &'static str {
         "modulus"
     }
-    fn unit(&self) -> &'static str {
+    fn unit(&self, _: &str) -> &'static str {
         "relative"
     }
     fn locations(&self, spec: &ModelSpec) -> Vec<String> {
@@ -346,7 +350,7 @@ impl Effect for JointInertia {
     fn kind(&self) -> &'static str {
         "joint-inertia"
     }
-    fn unit(&self) -> &'static str {
+    fn unit(&self, _: &str) -> &'static str {
         "kg·m²"
     }
     fn locations(&self, spec: &ModelSpec) -> Vec<String> {

@@ -190,24 +190,37 @@ fn fit(
     Ok(Fit { model, result })
 }
 
-/// ε at the profile point `u` of an effect: θ refitted from `theta0`; +∞ when the
-/// enriched model cannot be built or fitted.
+/// ε at the profile point `u` of an effect: θ refitted from each of `starts` (the best
+/// kept: the fitted θ of the model without the effect can sit in a valley the effect's
+/// true value does not share), +∞ when the enriched model cannot be built or fitted.
 fn profile_point(
     spec: &ModelSpec,
     effect: &dyn Effect,
     location: &str,
     u: f64,
     data: &MeasuredData,
-    theta0: &[f64],
+    starts: &[&[f64]],
 ) -> (f64, Vec<f64>) {
+    let mut best = (f64::INFINITY, starts[0].to_vec());
     let mut s = spec.clone();
     if effect.apply(&mut s, location, u).is_err() {
-        return (f64::INFINITY, theta0.to_vec());
+        return best;
     }
-    match fit(&s, data, theta0, false) {
-        Ok(f) if f.result.epsilon().is_finite() => (f.result.epsilon(), f.result.theta),
-        _ => (f64::INFINITY, theta0.to_vec()),
+    let Ok(model) = Model::from_spec(&s) else {
+        return best;
+    };
+    let Ok(ev) = Evaluator::new(&model) else {
+        return best;
+    };
+    let mut mm = ModeMatching::new(ev);
+    for t in starts {
+        if let Ok(r) = mm.run(&model, data, t, &mm_options())
+            && r.epsilon() < best.0
+        {
+            best = (r.epsilon(), r.theta);
+        }
     }
+    best
 }
 
 /// The misfit of a fitted model, per mode and per channel.
@@ -455,7 +468,18 @@ fn refit(
             Box::new(move |t| t * h),
         ),
     };
-    let eps_at = |u: f64| profile_point(spec, effect, &c.location, u, data, theta0);
+    // Starts of every inner fit: the fitted θ without the effect, the nominal θ, and the θ
+    // of the best profile point so far (continuation).
+    let nominal = Model::from_spec(spec).ok()?.nominal_theta();
+    let best = std::cell::RefCell::new((f64::INFINITY, theta0.to_vec()));
+    let eps_at = |u: f64| {
+        let last = best.borrow().1.clone();
+        let r = profile_point(spec, effect, &c.location, u, data, &[theta0, &nominal, &last]);
+        if r.0 < best.borrow().0 {
+            *best.borrow_mut() = r.clone();
+        }
+        r
+    };
     let (t, eps) = minimize_1d(|t| eps_at(to_u(t)).0, t0, d, 2e-3);
     if !eps.is_finite() {
         return None;
@@ -476,7 +500,7 @@ fn refit(
     };
     Some(Refit {
         effect: effect.kind(),
-        unit: effect.unit(),
+        unit: effect.unit(&c.location),
         location: c.location.clone(),
         u,
         std_u,
