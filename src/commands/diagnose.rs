@@ -28,7 +28,7 @@ pub struct DiagnoseArgs {
     #[arg(long)]
     pub data: PathBuf,
     /// Family-wise significance level of the test over all candidates.
-    #[arg(long, default_value_t = 1e-3)]
+    #[arg(long, default_value_t = 1e-4)]
     pub alpha: f64,
     /// Candidates refitted with the full update per round.
     #[arg(long, default_value_t = 4)]
@@ -139,6 +139,10 @@ pub fn to_json(d: &Diagnosis, model: &Model, seconds: f64) -> Value {
                 "threshold": n.threshold,
                 "log_bayes_factor": n.log_bayes_factor,
             },
+            "indistinguishable_from": n.indistinguishable_from.iter().map(|o| json!({
+                "effect": o.effect, "location": o.location, "value": o.value,
+                "std": finite(o.std), "unit": o.unit, "epsilon": o.epsilon,
+            })).collect::<Vec<_>>(),
         })).collect::<Vec<_>>(),
         "candidates": first.map_or_else(Vec::new, |r| r.candidates.iter().take(30).map(|c| json!({
             "effect": c.effect, "location": c.location, "score": c.score,
@@ -156,6 +160,9 @@ pub fn to_json(d: &Diagnosis, model: &Model, seconds: f64) -> Value {
                 "std": finite(f.std), "unit": f.unit, "epsilon": f.epsilon,
             })).collect::<Vec<_>>(),
             "named": r.named.as_ref().map(|n| format!("{}@{}", n.refit.effect, n.refit.location)),
+            "withdrawn": r.withdrawn.iter().map(|w| json!({
+                "effect": w.effect, "location": w.location, "likelihood_ratio": w.likelihood_ratio,
+            })).collect::<Vec<_>>(),
         })).collect::<Vec<_>>(),
         "before": localization_json(&d.before),
         "after": localization_json(&d.after),
@@ -182,7 +189,7 @@ fn table(d: &Diagnosis, seconds: f64) -> String {
     for n in &d.named {
         let _ = writeln!(
             s,
-            "named: {}@{} = {:.4e} ± {:.2e} {} (ε {:.1} -> {:.1}, Λ = {:.1})",
+            "named: {}@{} = {:.4e} ± {:.2e} {} (ε {:.1} -> {:.1}, Λ = {:.1}){}",
             n.refit.effect,
             n.refit.location,
             n.refit.value,
@@ -190,7 +197,26 @@ fn table(d: &Diagnosis, seconds: f64) -> String {
             n.refit.unit,
             n.epsilon_before,
             n.refit.epsilon,
-            n.likelihood_ratio
+            n.likelihood_ratio,
+            if n.indistinguishable_from.is_empty() {
+                String::new()
+            } else {
+                format!(
+                    "; the data cannot tell it from {}",
+                    n.indistinguishable_from
+                        .iter()
+                        .map(|o| format!("{}@{} (ε {:.1})", o.effect, o.location, o.epsilon))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                )
+            }
+        );
+    }
+    for w in d.rounds.iter().flat_map(|r| &r.withdrawn) {
+        let _ = writeln!(
+            s,
+            "withdrawn: {}@{} (with the later effects in, taking it out raises ε by only {:.1})",
+            w.effect, w.location, w.likelihood_ratio
         );
     }
     let _ = writeln!(

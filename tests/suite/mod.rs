@@ -4,6 +4,7 @@ mod cantilever_cases;
 mod cli;
 mod common;
 mod daemon;
+mod diagnosis;
 mod fe;
 mod modal_set;
 mod mode_matching;

@@ -58,7 +58,7 @@ pub struct DiagnosisOptions {
 impl Default for DiagnosisOptions {
     fn default() -> Self {
         Self {
-            alpha: 1e-3,
+            alpha: 1e-4,
             refits: 4,
             max_effects: 4,
         }
@@ -121,6 +121,23 @@ pub struct Named {
     pub likelihood_ratio: f64,
     pub threshold: f64,
     pub log_bayes_factor: f64,
+    /// Other refitted candidates whose ε is within [`INDISTINGUISHABLE`] of this one's: the
+    /// data cannot tell them apart (e.g. a mass at either end of an axially rigid beam).
+    pub indistinguishable_from: Vec<Refit>,
+}
+
+/// Two refits whose ε differ by less than this (2 ln 20: a likelihood ratio below 20, under
+/// "strong" evidence) are reported as indistinguishable.
+pub const INDISTINGUISHABLE: f64 = 6.0;
+
+/// An effect named in an earlier round and withdrawn: with the later effects in the model it
+/// no longer passed the test (it stood in for them).
+#[derive(Debug, Clone)]
+pub struct Withdrawn {
+    pub effect: &'static str,
+    pub location: String,
+    /// ε increase when it is taken out again.
+    pub likelihood_ratio: f64,
 }
 
 /// One round of the workflow.
@@ -130,6 +147,7 @@ pub struct Round {
     pub candidates: Vec<Candidate>,
     pub refits: Vec<Refit>,
     pub named: Option<Named>,
+    pub withdrawn: Vec<Withdrawn>,
 }
 
 /// The outcome of [`diagnose`].
@@ -474,7 +492,14 @@ fn refit(
     let best = std::cell::RefCell::new((f64::INFINITY, theta0.to_vec()));
     let eps_at = |u: f64| {
         let last = best.borrow().1.clone();
-        let r = profile_point(spec, effect, &c.location, u, data, &[theta0, &nominal, &last]);
+        let r = profile_point(
+            spec,
+            effect,
+            &c.location,
+            u,
+            data,
+            &[theta0, &nominal, &last],
+        );
         if r.0 < best.borrow().0 {
             *best.borrow_mut() = r.clone();
         }
@@ -511,6 +536,104 @@ fn refit(
     })
 }
 
+/// `f` over `items` on the available cores (results in item order); `progress(done)` on
+/// the calling thread as items finish.
+fn par_map<T: Sync, R: Send>(
+    items: &[T],
+    f: impl Fn(&T) -> R + Sync,
+    mut progress: impl FnMut(usize),
+) -> Vec<R> {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let workers = std::thread::available_parallelism()
+        .map_or(1, |n| n.get())
+        .min(items.len())
+        .max(1);
+    let next = AtomicUsize::new(0);
+    let (tx, rx) = std::sync::mpsc::channel::<(usize, R)>();
+    let mut out: Vec<Option<R>> = (0..items.len()).map(|_| None).collect();
+    std::thread::scope(|scope| {
+        for _ in 0..workers {
+            let tx = tx.clone();
+            let (next, f) = (&next, &f);
+            scope.spawn(move || {
+                crate::core::sequential_numerics();
+                loop {
+                    let i = next.fetch_add(1, Ordering::Relaxed);
+                    if i >= items.len() {
+                        break;
+                    }
+                    if tx.send((i, f(&items[i]))).is_err() {
+                        break;
+                    }
+                }
+            });
+        }
+        drop(tx);
+        for (done, (i, r)) in rx.iter().enumerate() {
+            out[i] = Some(r);
+            progress(done + 1);
+        }
+    });
+    out.into_iter()
+        .map(|r| r.expect("every item was computed"))
+        .collect()
+}
+
+/// `spec` with `named` added at their values.
+fn with_effects(
+    spec: &ModelSpec,
+    effects: &[Box<dyn Effect>],
+    named: &[&Refit],
+) -> Result<ModelSpec, DiagnosisError> {
+    let mut s = spec.clone();
+    for r in named {
+        effect_of(effects, r.effect).apply(&mut s, &r.location, r.u)?;
+    }
+    Ok(s)
+}
+
+/// One pass of coordinate descent over the values of `set`: each effect's value refitted
+/// (profile) with the others at theirs. Returns ε of `spec` with the set at its new values.
+fn reprofile(
+    spec: &ModelSpec,
+    effects: &[Box<dyn Effect>],
+    set: &mut [Refit],
+    data: &MeasuredData,
+    theta: &[f64],
+) -> Result<(f64, Vec<f64>), DiagnosisError> {
+    let mut theta = theta.to_vec();
+    for i in 0..set.len() {
+        let others: Vec<&Refit> = set
+            .iter()
+            .enumerate()
+            .filter(|&(k, _)| k != i)
+            .map(|(_, r)| r)
+            .collect();
+        let without = with_effects(spec, effects, &others)?;
+        let c = Candidate {
+            effect: set[i].effect,
+            location: set[i].location.clone(),
+            score: 0.0,
+            u_linear: set[i].u,
+        };
+        if let Some(better) = refit(&without, effect_of(effects, c.effect), &c, data, &theta) {
+            theta = better.theta.clone();
+            set[i] = better;
+        }
+    }
+    let refs: Vec<&Refit> = set.iter().collect();
+    let f = fit(&with_effects(spec, effects, &refs)?, data, &theta, false)?;
+    Ok((f.result.epsilon(), f.result.theta))
+}
+
+fn effect_of<'a>(effects: &'a [Box<dyn Effect>], kind: &str) -> &'a dyn Effect {
+    effects
+        .iter()
+        .find(|e| e.kind() == kind)
+        .expect("an effect of the catalogue")
+        .as_ref()
+}
+
 /// Runs the workflow (module docs) on `spec` and `data`. `progress(stage, done, total)` is
 /// called as candidates are screened and refitted.
 pub fn diagnose(
@@ -521,14 +644,14 @@ pub fn diagnose(
 ) -> Result<Diagnosis, DiagnosisError> {
     let effects = effects::catalogue();
     let nominal = build(spec, || "no effect added".into())?;
-    let mut current = spec.clone();
-    let mut f = fit(&current, data, &nominal.nominal_theta(), true)?;
+    let mut f = fit(spec, data, &nominal.nominal_theta(), true)?;
     let before = localize(&f.model, data, &f.result.last);
     let n_candidates = candidates_of(&effects, spec, &[]).len();
     let threshold = chi2_1_upper_quantile(opts.alpha / n_candidates.max(1) as f64);
     let n_data = data.n_data() as f64;
     let mut named: Vec<Named> = Vec::new();
     let mut rounds = Vec::new();
+    let mut current = spec.clone();
     loop {
         let base = f.result.last.clone();
         let mut ev = Evaluator::new(&f.model).map_err(|e| DiagnosisError::Update(e.to_string()))?;
@@ -538,30 +661,36 @@ pub fn diagnose(
         let q = j.qr().compute_thin_Q();
         let cands = candidates_of(&effects, &current, &named);
         let total = cands.len();
-        let mut screened: Vec<Candidate> = Vec::with_capacity(total);
-        for (k, (e, l)) in cands.iter().enumerate() {
-            if let Some(c) = screen(&current, *e, l, data, &base, &q) {
-                screened.push(c);
-            }
-            progress("screening", k + 1, total);
-        }
+        let mut screened: Vec<Candidate> = par_map(
+            &cands,
+            |(e, l)| screen(&current, *e, l, data, &base, &q),
+            |done| progress("screening", done, total),
+        )
+        .into_iter()
+        .flatten()
+        .collect();
         screened.sort_by(|a, b| b.score.total_cmp(&a.score));
         let best: Vec<&Candidate> = screened
             .iter()
             .filter(|c| c.score > 0.0)
             .take(opts.refits)
             .collect();
-        let mut refits = Vec::new();
-        for (k, c) in best.iter().enumerate() {
-            let e = effects
-                .iter()
-                .find(|e| e.kind() == c.effect)
-                .expect("a screened effect is in the catalogue");
-            if let Some(r) = refit(&current, e.as_ref(), c, data, &base.theta) {
-                refits.push(r);
-            }
-            progress("refitting", k + 1, best.len());
-        }
+        let mut refits: Vec<Refit> = par_map(
+            &best,
+            |c| {
+                refit(
+                    &current,
+                    effect_of(&effects, c.effect),
+                    c,
+                    data,
+                    &base.theta,
+                )
+            },
+            |done| progress("refitting", done, best.len()),
+        )
+        .into_iter()
+        .flatten()
+        .collect();
         refits.sort_by(|a, b| a.epsilon.total_cmp(&b.epsilon));
         let eps_before = f.result.epsilon();
         let winner = refits.first().and_then(|r| {
@@ -572,28 +701,102 @@ pub fn diagnose(
                 likelihood_ratio: lr,
                 threshold,
                 log_bayes_factor: lr / 2.0 - 0.5 * n_data.ln(),
+                indistinguishable_from: refits[1..]
+                    .iter()
+                    .filter(|o| o.epsilon - r.epsilon < INDISTINGUISHABLE)
+                    .cloned()
+                    .collect(),
             })
         });
-        rounds.push(Round {
+        let mut round = Round {
             epsilon: eps_before,
             candidates: screened,
             refits,
             named: winner.clone(),
-        });
-        let Some(w) = winner else { break };
-        let e = effects
-            .iter()
-            .find(|e| e.kind() == w.refit.effect)
-            .expect("a named effect is in the catalogue");
-        e.apply(&mut current, &w.refit.location, w.refit.u)?;
+            withdrawn: Vec::new(),
+        };
+        let Some(w) = winner else {
+            rounds.push(round);
+            break;
+        };
         let theta = w.refit.theta.clone();
         named.push(w);
-        f = fit(&current, data, &theta, false)?;
+        // Backward elimination: an earlier effect that no longer passes the test with the
+        // new one in the model stood in for it; withdraw it. The test of each refits the
+        // values of the others without it (they were fitted with it present).
+        loop {
+            let refs: Vec<&Refit> = named.iter().map(|n| &n.refit).collect();
+            current = with_effects(spec, &effects, &refs)?;
+            f = fit(&current, data, &theta, false)?;
+            let mut weakest: Option<(usize, f64, Vec<Refit>)> = None;
+            for i in 0..named.len().saturating_sub(1) {
+                let mut others: Vec<Refit> = named
+                    .iter()
+                    .enumerate()
+                    .filter(|&(k, _)| k != i)
+                    .map(|(_, n)| n.refit.clone())
+                    .collect();
+                let (eps_without, _) = reprofile(spec, &effects, &mut others, data, &theta)?;
+                let lr = eps_without - f.result.epsilon();
+                if lr <= threshold && weakest.as_ref().is_none_or(|w| lr < w.1) {
+                    weakest = Some((i, lr, others));
+                }
+            }
+            let Some((i, lr, others)) = weakest else {
+                break;
+            };
+            let gone = named.remove(i);
+            for (n, r) in named.iter_mut().zip(others) {
+                n.refit = r;
+            }
+            round.withdrawn.push(Withdrawn {
+                effect: gone.refit.effect,
+                location: gone.refit.location.clone(),
+                likelihood_ratio: lr,
+            });
+        }
+        rounds.push(round);
         if named.len() >= opts.max_effects {
             break;
         }
     }
+    // With several effects named, each value was fitted with the later ones still missing:
+    // refit each with the others at their values.
+    if named.len() > 1 {
+        let mut set: Vec<Refit> = named.iter().map(|n| n.refit.clone()).collect();
+        let (eps, theta) = reprofile(spec, &effects, &mut set, data, &f.result.theta)?;
+        if eps <= f.result.epsilon() {
+            for (n, r) in named.iter_mut().zip(set) {
+                n.refit = r;
+            }
+            let refs: Vec<&Refit> = named.iter().map(|n| &n.refit).collect();
+            current = with_effects(spec, &effects, &refs)?;
+            f = fit(&current, data, &theta, false)?;
+        }
+    }
     let after = localize(&f.model, data, &f.result.last);
+    // After a withdrawal, the evidence of what remains is recomputed against the model
+    // without it (with the other remaining effects refitted).
+    if rounds.iter().any(|r| !r.withdrawn.is_empty()) {
+        for i in 0..named.len() {
+            let eps_without = if named.len() == 1 {
+                before.epsilon
+            } else {
+                let mut others: Vec<Refit> = named
+                    .iter()
+                    .enumerate()
+                    .filter(|&(k, _)| k != i)
+                    .map(|(_, n)| n.refit.clone())
+                    .collect();
+                reprofile(spec, &effects, &mut others, data, &f.result.theta)?.0
+            };
+            let lr = eps_without - after.epsilon;
+            let n = &mut named[i];
+            n.epsilon_before = eps_without;
+            n.likelihood_ratio = lr;
+            n.log_bayes_factor = lr / 2.0 - 0.5 * n_data.ln();
+        }
+    }
     Ok(Diagnosis {
         before,
         after,

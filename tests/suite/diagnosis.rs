@@ -1,0 +1,225 @@
+//! The discrepancy workflow (issue 6) on data that carry an effect the model lacks: the lab
+//! frame, 9 modes at all 42 channels, 1 % frequency CoV and 5 % shape NSD, noise drawn.
+//!
+//! Sizes are "moderate" in the sense the issue's ε criterion needs: large enough that the
+//! nominal model class (16 bolt stiffnesses and E, which absorb part of any effect) fits
+//! with ε at least 3.3 times its noise level, so that explaining the effect can bring ε
+//! down to 30 % of it.
+
+use boltwatch::core::diagnosis::effects::Injection;
+use boltwatch::core::diagnosis::{Diagnosis, DiagnosisOptions, diagnose};
+use boltwatch::core::model::Model;
+use boltwatch::core::model::spec::ModelSpec;
+use boltwatch::core::simulate::{Noise, simulated_measured_data};
+use boltwatch::core::updating::MeasuredData;
+use rand::{Rng, SeedableRng};
+
+fn lab_spec() -> ModelSpec {
+    let text = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/config/models/lab-frame.toml"
+    ))
+    .unwrap();
+    toml::from_str(&text).unwrap()
+}
+
+/// The lab frame without its modulus parameter (so that a modulus change is missing).
+fn lab_spec_without_modulus() -> ModelSpec {
+    let mut s = lab_spec();
+    s.parameters.retain(|p| p.members.is_empty());
+    s
+}
+
+const NOISE: Noise = Noise {
+    frequency_cov: 0.01,
+    shape_nsd: 0.05,
+};
+
+/// 9 noisy modes of `spec` with `injections` added, at θ (default nominal).
+fn data(spec: &ModelSpec, injections: &[&str], theta: Option<&[f64]>, seed: u64) -> MeasuredData {
+    let mut s = spec.clone();
+    for i in injections {
+        Injection::parse(i).unwrap().apply(&mut s).unwrap();
+    }
+    let model = Model::from_spec(&s).unwrap();
+    let theta = theta.map_or_else(|| model.nominal_theta(), <[f64]>::to_vec);
+    simulated_measured_data(&model, &theta, 9, NOISE, true, seed).unwrap()
+}
+
+fn run(spec: &ModelSpec, data: &MeasuredData) -> Diagnosis {
+    boltwatch::core::sequential_numerics();
+    diagnose(spec, data, &DiagnosisOptions::default(), |_, _, _| {}).unwrap()
+}
+
+/// One hidden effect: named with the right effect and location, ε after at most 30 % of
+/// ε before, the fitted value within 3σ of the truth.
+fn hidden_effect_is_named(spec: &ModelSpec, injection: &str, seed: u64) {
+    let inj = Injection::parse(injection).unwrap();
+    let d = run(spec, &data(spec, &[injection], None, seed));
+    let ratio = d.after.epsilon / d.before.epsilon;
+    println!(
+        "{injection} (seed {seed}): named {:?}; ε {:.1} -> {:.1} ({:.0} %)",
+        d.named
+            .iter()
+            .map(|n| format!(
+                "{}@{} = {:.4e} ± {:.2e} {} (Λ {:.1})",
+                n.refit.effect,
+                n.refit.location,
+                n.refit.value,
+                n.refit.std,
+                n.refit.unit,
+                n.likelihood_ratio
+            ))
+            .collect::<Vec<_>>(),
+        d.before.epsilon,
+        d.after.epsilon,
+        100.0 * ratio
+    );
+    let n = d.named.first().expect("an effect is named");
+    assert_eq!(n.refit.effect, inj.effect.kind(), "{injection}");
+    assert_eq!(n.refit.location, inj.location, "{injection}");
+    assert!(
+        ratio <= 0.3,
+        "{injection}: ε after is {:.0} % of before",
+        100.0 * ratio
+    );
+    let z = (n.refit.value - inj.value) / n.refit.std;
+    assert!(
+        z.abs() <= 3.0,
+        "{injection}: fitted {} ± {}, {z:.1}σ from the truth",
+        n.refit.value,
+        n.refit.std
+    );
+}
+
+#[test]
+fn a_hidden_added_mass_is_named() {
+    hidden_effect_is_named(&lab_spec(), "added-mass@B2.3=1", 1);
+}
+
+#[test]
+fn a_hidden_support_flexibility_is_named() {
+    hidden_effect_is_named(&lab_spec(), "support-flexibility@BL.rz=3000", 2);
+}
+
+#[test]
+fn a_hidden_member_stiffness_change_is_named() {
+    hidden_effect_is_named(&lab_spec(), "member-stiffness@C1L=-0.5", 3);
+}
+
+/// A uniform change of E moves every frequency and no mode shape, and the bolt stiffnesses
+/// absorb part of it, so only a large change brings the ε of the nominal class to 3.3 times
+/// its noise level (at −25 %, ε after is still 37 % of before); a few per cent are *named*
+/// (the detectability table in the README).
+#[test]
+fn a_hidden_modulus_change_is_named() {
+    hidden_effect_is_named(&lab_spec_without_modulus(), "modulus@global=-0.4", 4);
+}
+
+/// A mass at either end of an axially rigid floor beam moves the sway modes alike: the
+/// workflow names the effect and says the data cannot tell the two joints apart.
+#[test]
+fn indistinguishable_locations_are_reported() {
+    let spec = lab_spec();
+    let d = run(&spec, &data(&spec, &["added-mass@J2R=3"], None, 1));
+    let n = d.named.first().expect("an effect is named");
+    assert_eq!(n.refit.effect, "added-mass");
+    let mut places: Vec<&str> = std::iter::once(n.refit.location.as_str())
+        .chain(n.indistinguishable_from.iter().map(|o| o.location.as_str()))
+        .collect();
+    places.sort_unstable();
+    println!(
+        "added-mass@J2R=3: named {} = {:.3} ± {:.3} kg, indistinguishable from {:?}",
+        n.refit.location,
+        n.refit.value,
+        n.refit.std,
+        n.indistinguishable_from
+            .iter()
+            .map(|o| (&o.location, o.epsilon - n.refit.epsilon))
+            .collect::<Vec<_>>()
+    );
+    assert!(
+        places.contains(&"J2L") && places.contains(&"J2R"),
+        "{places:?}"
+    );
+}
+
+#[test]
+fn a_hidden_joint_inertia_error_is_named() {
+    hidden_effect_is_named(&lab_spec(), "joint-inertia@J1L=0.005", 5);
+}
+
+/// Bolt-stiffness changes (inside the model class) and noise only, 20 seeds: nothing named.
+#[test]
+fn nothing_is_named_without_a_hidden_effect() {
+    let spec = lab_spec();
+    let model = Model::from_spec(&spec).unwrap();
+    let mut largest = (0.0, String::new());
+    for seed in 0..20 {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(100 + seed);
+        let theta: Vec<f64> = model
+            .parameters()
+            .iter()
+            .map(|p| {
+                if p.name == "E" {
+                    1.0
+                } else {
+                    rng.random_range(0.4..1.6)
+                }
+            })
+            .collect();
+        let d = run(&spec, &data(&spec, &[], Some(&theta), seed));
+        assert!(
+            d.named.is_empty(),
+            "seed {seed}: named {}@{} (Λ {:.1} > {:.1})",
+            d.named[0].refit.effect,
+            d.named[0].refit.location,
+            d.named[0].likelihood_ratio,
+            d.threshold
+        );
+        if let Some(r) = d.rounds[0].refits.first() {
+            let lr = d.before.epsilon - r.epsilon;
+            if lr > largest.0 {
+                largest = (lr, format!("seed {seed}: {}@{}", r.effect, r.location));
+            }
+        }
+    }
+    println!(
+        "largest likelihood ratio without an effect: {:.1} ({}); threshold {:.1}",
+        largest.0,
+        largest.1,
+        run(&spec, &data(&spec, &[], None, 0)).threshold
+    );
+}
+
+/// Two hidden effects at once: both named, the larger (by the ε it explains) first.
+#[test]
+fn two_hidden_effects_are_both_named_larger_first() {
+    let spec = lab_spec();
+    let d = run(
+        &spec,
+        &data(
+            &spec,
+            &["support-flexibility@BL.rz=3000", "added-mass@B2.3=0.5"],
+            None,
+            6,
+        ),
+    );
+    let named: Vec<String> = d
+        .named
+        .iter()
+        .map(|n| format!("{}@{}", n.refit.effect, n.refit.location))
+        .collect();
+    println!(
+        "named {named:?}; ε {:.1} -> {:.1}; values {:?}",
+        d.before.epsilon,
+        d.after.epsilon,
+        d.named
+            .iter()
+            .map(|n| (n.refit.value, n.refit.std))
+            .collect::<Vec<_>>()
+    );
+    assert!(named.len() >= 2, "{named:?}");
+    assert_eq!(named[0], "support-flexibility@BL.rz");
+    assert_eq!(named[1], "added-mass@B2.3");
+}
