@@ -223,3 +223,77 @@ fn two_hidden_effects_are_both_named_larger_first() {
     assert_eq!(named[0], "support-flexibility@BL.rz");
     assert_eq!(named[1], "added-mass@B2.3");
 }
+
+#[test]
+fn a_hidden_splice_is_named() {
+    hidden_effect_is_named(&lab_spec(), "splice@C2L.2=2000", 7);
+}
+
+/// The lab frame's flat bars are slender about their weak axis: a column carries −32 kN
+/// (70 % of its Euler load, 58 MPa) before its geometric stiffness moves the modes enough
+/// for the ε criterion.
+#[test]
+fn a_hidden_axial_force_is_named() {
+    hidden_effect_is_named(&lab_spec(), "axial-force@C1L=-32000", 8);
+}
+
+/// The splice effect is exactly a member in two parts joined by a bolted connection: a
+/// cantilever spliced at mid-span has the frequencies of the same cantilever written as two
+/// members and a connection (identical meshes; 1e-10 relative).
+#[test]
+fn a_splice_is_a_two_part_member_with_a_connection() {
+    let head = r#"name = "c"
+[[materials]]
+name = "steel"
+E = 2.1e11
+rho = 7840.0
+[[sections]]
+name = "flat"
+A = 5.5e-4
+I = 5.5458e-9
+[[nodes]]
+name = "A"
+x = 0.0
+y = 0.0
+[[nodes]]
+name = "B"
+x = 0.0
+y = 1.0
+[[supports]]
+node = "A"
+"#;
+    let one = format!(
+        "{head}[[members]]\nname = \"AB\"\nfrom = \"A\"\nto = \"B\"\nsection = \"flat\"\nmaterial = \"steel\"\nelements = 10\n"
+    );
+    let two = format!(
+        "{head}[[nodes]]\nname = \"S\"\nx = 0.0\ny = 0.5\n\
+         [[members]]\nname = \"AS\"\nfrom = \"A\"\nto = \"S\"\nsection = \"flat\"\nmaterial = \"steel\"\nelements = 5\n\
+         [[members]]\nname = \"SB\"\nfrom = \"S\"\nto = \"B\"\nsection = \"flat\"\nmaterial = \"steel\"\nelements = 5\n\
+         [[connections]]\nmember = \"SB\"\nnode = \"S\"\nk = 1500.0\n"
+    );
+    let mut spliced: ModelSpec = toml::from_str(&one).unwrap();
+    Injection::parse("splice@AB.5=1500")
+        .unwrap()
+        .apply(&mut spliced)
+        .unwrap();
+    let freqs = |m: &Model| {
+        let mut s = boltwatch::core::modal::DenseEigen::new(m).unwrap();
+        let e =
+            boltwatch::core::modal::EigenSolver::solve(&mut s, m, &m.nominal_theta(), 6).unwrap();
+        (0..6).map(|k| e.frequency_hz(k)).collect::<Vec<_>>()
+    };
+    let (a, b) = (
+        freqs(&Model::from_spec(&spliced).unwrap()),
+        freqs(&Model::from_toml(&two).unwrap()),
+    );
+    let plain = freqs(&Model::from_toml(&one).unwrap());
+    for k in 0..6 {
+        assert!(
+            ((a[k] - b[k]) / b[k]).abs() < 1e-10,
+            "mode {k}: {} vs {}",
+            a[k],
+            b[k]
+        );
+    }
+    assert!(a[0] < plain[0] * 0.99, "the splice softens the cantilever");
+}

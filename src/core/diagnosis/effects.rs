@@ -62,6 +62,8 @@ pub fn catalogue() -> Vec<Box<dyn Effect>> {
         Box::new(MemberStiffness),
         Box::new(Modulus),
         Box::new(JointInertia),
+        Box::new(Splice),
+        Box::new(AxialForce),
     ]
 }
 
@@ -381,6 +383,185 @@ impl Effect for JointInertia {
     }
 }
 
+/// Length, EI of a member (from the file).
+fn member_length_ei(spec: &ModelSpec, member: &str) -> Option<(f64, f64)> {
+    let m = spec.members.iter().find(|m| m.name == member)?;
+    let pos = |n: &str| spec.nodes.iter().find(|p| p.name == n).map(|p| (p.x, p.y));
+    let ((x0, y0), (x1, y1)) = (pos(&m.from)?, pos(&m.to)?);
+    let e = spec.materials.iter().find(|x| x.name == m.material)?.E;
+    let i = spec.sections.iter().find(|x| x.name == m.section)?.I;
+    Some(((x1 - x0).hypot(y1 - y0), e * i))
+}
+
+/// An axial force in a member (N, tension positive) through its geometric stiffness: a
+/// preload, a thermal restraint force, a load carried by the frame.
+pub struct AxialForce;
+
+impl Effect for AxialForce {
+    fn kind(&self) -> &'static str {
+        "axial-force"
+    }
+    fn unit(&self, _: &str) -> &'static str {
+        "N"
+    }
+    fn locations(&self, spec: &ModelSpec) -> Vec<String> {
+        spec.members.iter().map(|m| m.name.clone()).collect()
+    }
+    fn apply(&self, spec: &mut ModelSpec, location: &str, u: f64) -> Result<(), DiagnosisError> {
+        let m = spec
+            .members
+            .iter_mut()
+            .find(|m| m.name == location)
+            .ok_or_else(|| unknown(location, "a member"))?;
+        m.axial_force += u;
+        Ok(())
+    }
+    fn step(&self, spec: &ModelSpec, location: &str) -> f64 {
+        // 2 % of the member's Euler load π²EI/L².
+        member_length_ei(spec, location).map_or(1.0, |(l, ei)| {
+            0.02 * std::f64::consts::PI.powi(2) * ei / (l * l)
+        })
+    }
+    fn sign(&self) -> Sign {
+        Sign::Any
+    }
+}
+
+/// An unmodelled splice: at an interior mesh node `<member>.<k>` the member is in two parts
+/// joined by a rotational spring. Internal coordinate the compliance (1/k), value the
+/// stiffness (N·m/rad).
+pub struct Splice;
+
+impl Splice {
+    fn split(spec: &ModelSpec, location: &str) -> Option<(usize, usize)> {
+        let (member, k) = location.rsplit_once('.')?;
+        let k: usize = k.parse().ok()?;
+        let mi = spec.members.iter().position(|m| m.name == member)?;
+        (k >= 1 && k < spec.members[mi].elements).then_some((mi, k))
+    }
+}
+
+impl Effect for Splice {
+    fn kind(&self) -> &'static str {
+        "splice"
+    }
+    fn unit(&self, _: &str) -> &'static str {
+        "N·m/rad"
+    }
+    fn locations(&self, spec: &ModelSpec) -> Vec<String> {
+        interior_nodes(spec)
+    }
+    fn apply(&self, spec: &mut ModelSpec, location: &str, u: f64) -> Result<(), DiagnosisError> {
+        let (mi, k) = Self::split(spec, location)
+            .ok_or_else(|| unknown(location, "an interior mesh node (`C2L.3`)"))?;
+        if u <= 0.0 {
+            return Ok(());
+        }
+        let m = spec.members[mi].clone();
+        let pos = |n: &str| spec.nodes.iter().find(|p| p.name == n).map(|p| (p.x, p.y));
+        let ((x0, y0), (x1, y1)) = (
+            pos(&m.from).ok_or_else(|| unknown(&m.from, "a node"))?,
+            pos(&m.to).ok_or_else(|| unknown(&m.to, "a node"))?,
+        );
+        // The parts span the same mesh (joint offsets are part of the end elements: the
+        // split node sits where mesh node k was only if the ends carry no offset; the
+        // lab frame's joint offsets make the first and last elements shorter, so the node
+        // is placed at the mesh node's position along the offset span).
+        let size = |n: &str| {
+            spec.joints
+                .iter()
+                .find(|j| j.node == n)
+                .map_or(0.0, |j| j.size)
+        };
+        let len = (x1 - x0).hypot(y1 - y0);
+        let (sa, sb) = (size(&m.from), size(&m.to));
+        let t = (sa + (len - sa - sb) * k as f64 / m.elements as f64) / len;
+        let node = format!("{}.splice{k}", m.name);
+        spec.nodes.push(crate::core::model::spec::NodeSpec {
+            name: node.clone(),
+            x: x0 + t * (x1 - x0),
+            y: y0 + t * (y1 - y0),
+        });
+        let (a, b) = (format!("{}~a", m.name), format!("{}~b", m.name));
+        // Connections keep their names; the part that now ends at their node takes over.
+        for c in spec.connections.iter_mut().filter(|c| c.member == m.name) {
+            c.name
+                .get_or_insert_with(|| format!("{}@{}", m.name, c.node));
+            c.member = if c.node == m.from {
+                a.clone()
+            } else {
+                b.clone()
+            };
+        }
+        for p in spec.parameters.iter_mut() {
+            if let Some(i) = p.members.iter().position(|x| *x == m.name) {
+                p.members[i] = a.clone();
+                p.members.push(b.clone());
+            }
+        }
+        // Interior locations of the member move to the part that holds them.
+        let relocate = |at: &mut String| {
+            if let Some(j) = at
+                .strip_prefix(&format!("{}.", m.name))
+                .and_then(|j| j.parse::<usize>().ok())
+            {
+                *at = match j.cmp(&k) {
+                    std::cmp::Ordering::Less => format!("{a}.{j}"),
+                    std::cmp::Ordering::Equal => node.clone(),
+                    std::cmp::Ordering::Greater => format!("{b}.{}", j - k),
+                };
+            }
+        };
+        for c in spec.channels.iter_mut() {
+            relocate(&mut c.at);
+        }
+        for x in spec.masses.iter_mut() {
+            relocate(&mut x.at);
+        }
+        for x in spec.springs.iter_mut() {
+            relocate(&mut x.a);
+            if let Some(bn) = x.b.as_mut() {
+                relocate(bn);
+            }
+        }
+        let mut part_a = m.clone();
+        part_a.name = a.clone();
+        part_a.to = node.clone();
+        part_a.elements = k;
+        let mut part_b = m.clone();
+        part_b.name = b.clone();
+        part_b.from = node.clone();
+        part_b.elements = m.elements - k;
+        spec.members[mi] = part_a;
+        spec.members.insert(mi + 1, part_b);
+        spec.connections
+            .push(crate::core::model::spec::ConnectionSpec {
+                name: Some(format!("splice@{location}")),
+                member: b,
+                node,
+                k: 1.0 / u,
+            });
+        Ok(())
+    }
+    fn step(&self, spec: &ModelSpec, location: &str) -> f64 {
+        let member = location.rsplit_once('.').map_or(location, |x| x.0);
+        // A spring 100 times the member's EI/L.
+        member_length_ei(spec, member).map_or(1e-6, |(l, ei)| l / (100.0 * ei))
+    }
+    fn sign(&self) -> Sign {
+        Sign::Positive
+    }
+    fn value(&self, u: f64) -> f64 {
+        1.0 / u
+    }
+    fn value_std(&self, u: f64, std_u: f64) -> f64 {
+        std_u / (u * u)
+    }
+    fn coordinate(&self, value: f64) -> f64 {
+        1.0 / value
+    }
+}
+
 /// An effect added to a model file: `kind@location=value` (`added-mass@J2R=0.5`), the
 /// value in the effect's unit.
 pub struct Injection {
@@ -434,7 +615,7 @@ impl Injection {
             )));
         }
         let known = self.effect.locations(spec);
-        if !known.iter().any(|l| *l == self.location) {
+        if !known.contains(&self.location) {
             return Err(DiagnosisError::Location(format!(
                 "{}@{}: not a location of this effect in the model (e.g. {})",
                 self.effect.kind(),

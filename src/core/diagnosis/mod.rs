@@ -380,7 +380,7 @@ fn screen(
     }
     let gg: f64 = g.iter().map(|v| v * v).sum();
     let gr: f64 = g.iter().zip(&base.r).map(|(a, b)| a * b).sum();
-    if !(gg > 0.0) || !gr.is_finite() {
+    if gg.is_nan() || gg <= 0.0 || !gr.is_finite() {
         return None;
     }
     let u_linear = -gr / gg;
@@ -426,7 +426,9 @@ fn minimize_1d(mut f: impl FnMut(f64) -> f64, t0: f64, d: f64, tol: f64) -> (f64
     (b, fb)
 }
 
-/// Golden-section search on [lo, hi] with a known interior point.
+/// Brent's minimization on [lo, hi] from a known interior point (golden sections with
+/// parabolic steps; R. P. Brent, *Algorithms for Minimization without Derivatives*, 1973,
+/// ch. 5): a smooth minimum in about 10 evaluations instead of golden section's 25.
 fn golden(
     f: &mut impl FnMut(f64) -> f64,
     mut lo: f64,
@@ -435,37 +437,67 @@ fn golden(
     tol: f64,
 ) -> (f64, f64) {
     const R: f64 = 0.381_966_011_250_105;
-    let mut best = best;
-    let (mut x1, mut x2) = (lo + R * (hi - lo), hi - R * (hi - lo));
-    let (mut f1, mut f2) = (f(x1), f(x2));
-    for (x, fx) in [(x1, f1), (x2, f2)] {
-        if fx < best.1 {
-            best = (x, fx);
-        }
-    }
-    for _ in 0..40 {
-        if hi - lo < tol {
+    let (mut x, mut fx) = best;
+    let (mut w, mut fw, mut v, mut fv) = (x, fx, x, fx);
+    let (mut d, mut e): (f64, f64) = (0.0, 0.0);
+    for _ in 0..60 {
+        let m = 0.5 * (lo + hi);
+        let tol1 = tol * 0.5 + 1e-12 * x.abs();
+        if (x - m).abs() <= 2.0 * tol1 - 0.5 * (hi - lo) {
             break;
         }
-        if f1 < f2 {
-            hi = x2;
-            (x2, f2) = (x1, f1);
-            x1 = lo + R * (hi - lo);
-            f1 = f(x1);
-            if f1 < best.1 {
-                best = (x1, f1);
+        let mut golden_step = true;
+        if e.abs() > tol1 {
+            // Parabola through x, w, v.
+            let r = (x - w) * (fx - fv);
+            let mut q = (x - v) * (fx - fw);
+            let mut p = (x - v) * q - (x - w) * r;
+            q = 2.0 * (q - r);
+            if q > 0.0 {
+                p = -p;
             }
+            q = q.abs();
+            if p.abs() < (0.5 * q * e).abs() && p > q * (lo - x) && p < q * (hi - x) {
+                e = d;
+                d = p / q;
+                let u = x + d;
+                if u - lo < 2.0 * tol1 || hi - u < 2.0 * tol1 {
+                    d = if m > x { tol1 } else { -tol1 };
+                }
+                golden_step = false;
+            }
+        }
+        if golden_step {
+            e = if x >= m { lo - x } else { hi - x };
+            d = R * e;
+        }
+        let u = if d.abs() >= tol1 {
+            x + d
         } else {
-            lo = x1;
-            (x1, f1) = (x2, f2);
-            x2 = hi - R * (hi - lo);
-            f2 = f(x2);
-            if f2 < best.1 {
-                best = (x2, f2);
+            x + tol1.copysign(d)
+        };
+        let fu = f(u);
+        if fu <= fx {
+            if u >= x {
+                lo = x;
+            } else {
+                hi = x;
+            }
+            (v, fv, w, fw, x, fx) = (w, fw, x, fx, u, fu);
+        } else {
+            if u < x {
+                lo = u;
+            } else {
+                hi = u;
+            }
+            if fu <= fw || w == x {
+                (v, fv, w, fw) = (w, fw, u, fu);
+            } else if fu <= fv || v == x || v == w {
+                (v, fv) = (u, fu);
             }
         }
     }
-    best
+    (x, fx)
 }
 
 /// The full nonlinear refit of one candidate (module docs, step 3).
@@ -670,11 +702,23 @@ pub fn diagnose(
         .flatten()
         .collect();
         screened.sort_by(|a, b| b.score.total_cmp(&a.score));
-        let best: Vec<&Candidate> = screened
+        // The best few by score, and the best of each effect type: the score is a first-order
+        // measure and underrates effects whose modal signature is strongly nonlinear in
+        // their size (a member losing half its stiffness).
+        let mut best: Vec<&Candidate> = screened
             .iter()
             .filter(|c| c.score > 0.0)
             .take(opts.refits)
             .collect();
+        for e in &effects {
+            if let Some(c) = screened
+                .iter()
+                .find(|c| c.effect == e.kind() && c.score > 0.0)
+                && !best.iter().any(|b| std::ptr::eq(*b, c))
+            {
+                best.push(c);
+            }
+        }
         let mut refits: Vec<Refit> = par_map(
             &best,
             |c| {

@@ -2,7 +2,7 @@
 
 use std::collections::HashMap;
 
-use super::element::{Section, frame_element};
+use super::element::{Section, frame_element, geometric_element};
 use super::sparse::{Accumulator, UnionPattern};
 use super::spec::{MemberSpec, ModelSpec};
 use super::{Channel, Connection, Model, ModelError, Parameter, ParameterKind};
@@ -368,6 +368,10 @@ pub(super) fn assemble(spec: &ModelSpec) -> Result<Model, ModelError> {
             let maps: [&[(usize, f64)]; 6] = [&c1[0], &c1[1], &c1[2], &c2[0], &c2[1], &c2[2]];
             acc[kt].add_mapped(&ke, &maps);
             acc[mass_target].add_mapped(&me, &maps);
+            if m.axial_force != 0.0 {
+                let kg = geometric_element(m.axial_force, at(k), at(k + 1));
+                acc[target(None)].add_mapped(&kg, &maps);
+            }
         }
     }
 

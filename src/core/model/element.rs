@@ -90,6 +90,28 @@ fn to_global(a: &Mat6, c: f64, s: f64) -> Mat6 {
     g
 }
 
+/// Local consistent geometric stiffness of an element of length `l` under axial force `n`
+/// (tension positive), from the same cubic shape functions (Przemieniecki §15).
+fn local_geometric(n: f64, l: f64) -> Mat6 {
+    let mut k = [[0.0; 6]; 6];
+    let b = [
+        [36.0, 3.0 * l, -36.0, 3.0 * l],
+        [3.0 * l, 4.0 * l * l, -3.0 * l, -l * l],
+        [-36.0, -3.0 * l, 36.0, -3.0 * l],
+        [3.0 * l, -l * l, -3.0 * l, 4.0 * l * l],
+    ];
+    scatter_bending(&mut k, &b, n / (30.0 * l));
+    k
+}
+
+/// Global geometric stiffness of the element from `p1` to `p2` under axial force `n`.
+pub fn geometric_element(n: f64, p1: [f64; 2], p2: [f64; 2]) -> Mat6 {
+    let dx = p2[0] - p1[0];
+    let dy = p2[1] - p1[1];
+    let l = dx.hypot(dy);
+    to_global(&local_geometric(n, l), dx / l, dy / l)
+}
+
 /// Global stiffness and consistent mass of the element from `p1` to `p2` (metres).
 pub fn frame_element(s: &Section, p1: [f64; 2], p2: [f64; 2]) -> (Mat6, Mat6) {
     let dx = p2[0] - p1[0];

@@ -122,6 +122,10 @@ pub struct MemberSpec {
     pub material: String,
     /// Number of frame elements along the member.
     pub elements: usize,
+    /// Axial force (N, tension positive): its geometric stiffness enters K0 (not scaled by
+    /// any parameter).
+    #[serde(default)]
+    pub axial_force: f64,
 }
 
 /// Fixed DOFs of a node; all three (clamped) when `fix` is absent.
