@@ -297,3 +297,112 @@ node = "A"
     }
     assert!(a[0] < plain[0] * 0.99, "the splice softens the cantilever");
 }
+
+/// As a user runs it: `simulate --inject` hides an effect in the data, `diagnose` names it
+/// and writes the `boltwatch.diagnosis.v1` contract and both plots; a bad injection is a
+/// one-line error naming the problem.
+#[test]
+fn diagnose_command_writes_the_contract_and_plots() {
+    let dir = std::env::temp_dir().join(format!("bw-diagnose-cli-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let bin = || {
+        let mut c = std::process::Command::new(env!("CARGO_BIN_EXE_boltwatch"));
+        c.current_dir(env!("CARGO_MANIFEST_DIR"));
+        c
+    };
+    let data = dir.join("data.json");
+    let o = bin()
+        .args([
+            "simulate",
+            "--model",
+            "config/models/lab-frame.toml",
+            "--seed",
+            "2",
+        ])
+        .args(["--inject", "support-flexibility@BL.rz=3000", "-o"])
+        .arg(&data)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let set: serde_json::Value = serde_json::from_slice(&std::fs::read(&data).unwrap()).unwrap();
+    assert!(
+        set["source"]
+            .as_str()
+            .unwrap()
+            .contains("--inject support-flexibility@BL.rz=3000")
+    );
+    let out = dir.join("diag");
+    let o = bin()
+        .args([
+            "diagnose",
+            "--model",
+            "config/models/lab-frame.toml",
+            "--data",
+        ])
+        .arg(&data)
+        .arg("-o")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        stdout.contains("named: support-flexibility@BL.rz"),
+        "{stdout}"
+    );
+    let d: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("diagnosis.json")).unwrap()).unwrap();
+    assert_eq!(d["schema"], "boltwatch.diagnosis.v1");
+    assert!(d["epsilon_after"].as_f64().unwrap() < 0.3 * d["epsilon_before"].as_f64().unwrap());
+    let n = &d["named"][0];
+    assert_eq!(n["effect"], "support-flexibility");
+    assert_eq!(n["location"], "BL.rz");
+    assert_eq!(n["unit"], "N·m/rad");
+    for key in ["value", "std", "epsilon_before", "epsilon_after"] {
+        assert!(n[key].is_f64(), "{key}: {n:#}");
+    }
+    assert!(n["evidence"]["log_bayes_factor"].as_f64().unwrap() > 100.0);
+    let c = &d["candidates"][0];
+    assert!(c["effect"].is_string() && c["location"].is_string() && c["score"].is_f64());
+    assert_eq!(d["before"]["modes"].as_array().unwrap().len(), 9);
+    assert_eq!(d["after"]["channels"].as_array().unwrap().len(), 42);
+    for plot in ["modes.svg", "structure.svg"] {
+        let svg = std::fs::read_to_string(out.join(plot)).unwrap();
+        assert!(
+            svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"),
+            "{plot}"
+        );
+    }
+    assert!(
+        std::fs::read_to_string(out.join("structure.svg"))
+            .unwrap()
+            .contains("support-flexibility@BL.rz")
+    );
+    // Bad injections.
+    for (inject, says) in [
+        ("added-mass@J9X=1", "not a location"),
+        ("added-mass@J2R=-1", "must be > 0"),
+        ("rust@J2R=1", "unknown effect"),
+        ("added-mass@J2R", "no `=`"),
+    ] {
+        let o = bin()
+            .args([
+                "simulate",
+                "--model",
+                "config/models/lab-frame.toml",
+                "--inject",
+                inject,
+                "-o",
+            ])
+            .arg(dir.join("bad.json"))
+            .output()
+            .unwrap();
+        assert_eq!(o.status.code(), Some(2), "{inject}");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            err.contains(says) && err.lines().count() == 1,
+            "{inject}: {err}"
+        );
+    }
+}
