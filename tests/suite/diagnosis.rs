@@ -406,3 +406,77 @@ fn diagnose_command_writes_the_contract_and_plots() {
         );
     }
 }
+
+/// The detectability table (issue 6): for each effect type, the smallest size on a ladder
+/// that is named (right effect; right location, or one the data cannot tell from it) in at
+/// least 4 of 5 noise seeds. A study, not a check (minutes in release):
+/// `cargo test --release --test tests detectability -- --ignored --nocapture`.
+#[test]
+#[ignore = "a study of several minutes; its table is in the README"]
+fn detectability_table() {
+    let ladders: [(&str, &str, &[f64], bool); 7] = [
+        ("added-mass", "B2.3", &[0.05, 0.1, 0.2, 0.4, 0.8], false),
+        (
+            "support-flexibility",
+            "BL.rz",
+            &[1e5, 5e4, 2e4, 1e4, 5e3],
+            false,
+        ),
+        (
+            "member-stiffness",
+            "C1L",
+            &[-0.05, -0.1, -0.2, -0.3, -0.5],
+            false,
+        ),
+        ("modulus", "global", &[-0.02, -0.05, -0.1, -0.2], true),
+        (
+            "joint-inertia",
+            "J1L",
+            &[2e-4, 5e-4, 1e-3, 2e-3, 4e-3],
+            false,
+        ),
+        ("splice", "C2L.2", &[1e5, 5e4, 2e4, 1e4, 5e3], false),
+        (
+            "axial-force",
+            "C1L",
+            &[-2000.0, -5000.0, -10000.0, -20000.0],
+            false,
+        ),
+    ];
+    println!("| effect | location | smallest size named in ≥ 4 of 5 seeds | named per size |");
+    println!("|---|---|---|---|");
+    for (kind, location, sizes, without_modulus) in ladders {
+        let spec = if without_modulus {
+            lab_spec_without_modulus()
+        } else {
+            lab_spec()
+        };
+        let mut found = None;
+        let mut counts = Vec::new();
+        for &size in sizes {
+            let injection = format!("{kind}@{location}={size}");
+            let hits = (0..5)
+                .filter(|&seed| {
+                    let d = run(&spec, &data(&spec, &[&injection], None, 200 + seed));
+                    d.named.first().is_some_and(|n| {
+                        n.refit.effect == kind
+                            && (n.refit.location == location
+                                || n.indistinguishable_from
+                                    .iter()
+                                    .any(|o| o.effect == kind && o.location == location))
+                    })
+                })
+                .count();
+            counts.push(format!("{size}: {hits}/5"));
+            if hits >= 4 {
+                found = Some(size);
+                break;
+            }
+        }
+        println!(
+            "| {kind} | {location} | {} | {} |",
+            found.map_or("beyond the ladder".to_string(), |s| s.to_string()),
+            counts.join(", ")
+        );
+    }
+}
