@@ -93,6 +93,7 @@ pub async fn run(settings: Settings) -> Result<()> {
         )?;
         let shared = Shared::new(&s.name, d.queue);
         let worker = Worker::new(
+            crate::commands::load_spec(&s.model)?,
             tracker,
             session.clone(),
             log,

@@ -18,10 +18,13 @@ use zenoh::qos::CongestionControl;
 use super::log::RollingLog;
 use super::metrics::Shared;
 use crate::core::model::Model;
+use crate::core::model::spec::ModelSpec;
 use crate::io::checkpoint;
 use crate::io::mcap::{to_ns, topic};
+use crate::io::replay::Job;
 use crate::pipeline::crosscheck::{CrosscheckConfig, crosscheck};
-use crate::pipeline::{Action, CrosscheckRequest, REJECTED_SCHEMA, Tracker, rfc3339};
+use crate::pipeline::verdict::diagnosis_alert;
+use crate::pipeline::{Action, REJECTED_SCHEMA, Tracker, rfc3339};
 
 /// What the subscriber hands the worker.
 pub enum Input {
@@ -39,24 +42,42 @@ const IDLE_TICK: Duration = Duration::from_millis(200);
 /// How long shutdown waits for a running cross-check.
 const CROSSCHECK_SHUTDOWN_WAIT: Duration = Duration::from_secs(60);
 
-/// The cross-check thread of one structure: one job at a time, none queued.
+/// Diagnoses (rare: one per model-inadequacy episode) that may wait behind a running job.
+const DIAGNOSES_QUEUED: usize = 4;
+
+/// The thread of one structure's work off the tracking path: cross-checks (one at a time:
+/// one requested while another job runs is skipped) and diagnoses (queued, up to
+/// [`DIAGNOSES_QUEUED`]).
 struct CrosscheckLane {
-    jobs: Option<SyncSender<(u64, Box<CrosscheckRequest>)>>,
-    results: Receiver<(u64, Value)>,
-    running: bool,
+    jobs: Option<SyncSender<(u64, Job)>>,
+    results: Receiver<(u64, &'static str, Value)>,
+    pending: usize,
     thread: Option<std::thread::JoinHandle<()>>,
 }
 
 impl CrosscheckLane {
-    fn start(model: Model, cfg: CrosscheckConfig, shape_weight: f64) -> Result<Self> {
-        let (jtx, jrx) = mpsc::sync_channel::<(u64, Box<CrosscheckRequest>)>(1);
+    fn start(
+        spec: ModelSpec,
+        model: Model,
+        cfg: CrosscheckConfig,
+        shape_weight: f64,
+    ) -> Result<Self> {
+        let (jtx, jrx) = mpsc::sync_channel::<(u64, Job)>(DIAGNOSES_QUEUED + 1);
         let (rtx, rrx) = mpsc::channel();
         let thread = std::thread::Builder::new()
             .name(format!("crosscheck-{}", model.name))
             .spawn(move || {
-                for (t, req) in jrx {
-                    let v = crosscheck(&model, &cfg, shape_weight, &req);
-                    if rtx.send((t, v)).is_err() {
+                crate::core::sequential_numerics();
+                for (t, job) in jrx {
+                    let r = match job {
+                        Job::Crosscheck(req) => {
+                            ("crosscheck", crosscheck(&model, &cfg, shape_weight, &req))
+                        }
+                        Job::Diagnose(req) => {
+                            ("alerts", diagnosis_alert(&spec, &model, shape_weight, &req))
+                        }
+                    };
+                    if rtx.send((t, r.0, r.1)).is_err() {
                         return;
                     }
                 }
@@ -64,42 +85,54 @@ impl CrosscheckLane {
         Ok(Self {
             jobs: Some(jtx),
             results: rrx,
-            running: false,
+            pending: 0,
             thread: Some(thread),
         })
     }
 
-    /// Starts a cross-check unless one is running; false if it was skipped.
-    fn submit(&mut self, t: u64, req: Box<CrosscheckRequest>) -> bool {
-        if self.running {
+    /// Queues a job unless the rules above skip it; false if it was skipped.
+    fn submit(&mut self, t: u64, job: Job) -> bool {
+        let limit = match job {
+            Job::Crosscheck(_) => 1,
+            Job::Diagnose(_) => DIAGNOSES_QUEUED + 1,
+        };
+        if self.pending >= limit {
             return false;
         }
-        match self.jobs.as_ref().map(|j| j.try_send((t, req))) {
+        match self.jobs.as_ref().map(|j| j.try_send((t, job))) {
             Some(Ok(())) => {
-                self.running = true;
+                self.pending += 1;
                 true
             }
             _ => false,
         }
     }
 
-    fn try_result(&mut self) -> Option<(u64, Value)> {
+    fn try_result(&mut self) -> Option<(u64, &'static str, Value)> {
         match self.results.try_recv() {
             Ok(r) => {
-                self.running = false;
+                self.pending -= 1;
                 Some(r)
             }
             Err(TryRecvError::Empty | TryRecvError::Disconnected) => None,
         }
     }
 
-    fn wait_result(&mut self, limit: Duration) -> Option<(u64, Value)> {
-        if !self.running {
-            return None;
+    /// Waits up to `limit` for every pending job.
+    fn wait_results(&mut self, limit: Duration) -> Vec<(u64, &'static str, Value)> {
+        let deadline = Instant::now() + limit;
+        let mut out = Vec::new();
+        while self.pending > 0 {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match self.results.recv_timeout(left) {
+                Ok(r) => {
+                    self.pending -= 1;
+                    out.push(r);
+                }
+                Err(_) => break,
+            }
         }
-        let r = self.results.recv_timeout(limit).ok();
-        self.running = false;
-        r
+        out
     }
 }
 
@@ -107,8 +140,8 @@ impl Drop for CrosscheckLane {
     fn drop(&mut self) {
         self.jobs.take();
         if let Some(t) = self.thread.take() {
-            if self.running {
-                // A cross-check that outlived the shutdown wait: do not block on it.
+            if self.pending > 0 {
+                // A job that outlived the shutdown wait: do not block on it.
                 return;
             }
             let _ = t.join();
@@ -133,6 +166,7 @@ pub struct Worker {
 impl Worker {
     #[allow(clippy::too_many_arguments)] // each is a distinct part the worker owns
     pub fn new(
+        spec: ModelSpec,
         tracker: Tracker,
         session: zenoh::Session,
         log: RollingLog,
@@ -142,6 +176,7 @@ impl Worker {
         crosscheck_cfg: CrosscheckConfig,
     ) -> Result<Self> {
         let lane = CrosscheckLane::start(
+            spec,
             tracker.model().clone(),
             crosscheck_cfg,
             tracker.config().shape_weight,
@@ -178,16 +213,16 @@ impl Worker {
                 Ok(Input::Shutdown) | Err(RecvTimeoutError::Disconnected) => break,
                 Err(RecvTimeoutError::Timeout) => self.log.tick()?,
             }
-            while let Some((t, v)) = self.lane.try_result() {
-                self.publish_crosscheck(t, &v)?;
+            while let Some((t, suffix, v)) = self.lane.try_result() {
+                self.publish_offpath(t, suffix, &v)?;
             }
             self.report_drops()?;
             if self.dirty && self.last_checkpoint.elapsed() >= self.checkpoint_every {
                 self.checkpoint()?;
             }
         }
-        if let Some((t, v)) = self.lane.wait_result(CROSSCHECK_SHUTDOWN_WAIT) {
-            self.publish_crosscheck(t, &v)?;
+        for (t, suffix, v) in self.lane.wait_results(CROSSCHECK_SHUTDOWN_WAIT) {
+            self.publish_offpath(t, suffix, &v)?;
         }
         self.report_drops()?;
         self.checkpoint()?;
@@ -234,9 +269,18 @@ impl Worker {
                     }
                     self.output(suffix, to_ns(time)?, &payload)?;
                 }
+                Action::Diagnose(req) => {
+                    let t = to_ns(req.set.time)?;
+                    if !self.lane.submit(t, Job::Diagnose(req)) {
+                        tracing::warn!(
+                            structure = s,
+                            "diagnosis of a model-inadequacy warning skipped: {DIAGNOSES_QUEUED} already wait"
+                        );
+                    }
+                }
                 Action::Crosscheck(req) => {
                     let t = to_ns(req.set.time)?;
-                    if !self.lane.submit(t, req) {
+                    if !self.lane.submit(t, Job::Crosscheck(req)) {
                         tracing::warn!(
                             structure = s,
                             "cross-check skipped: the previous one is still running"
@@ -297,8 +341,16 @@ impl Worker {
         Ok(())
     }
 
-    fn publish_crosscheck(&mut self, t: u64, v: &Value) -> Result<()> {
-        self.output("crosscheck", t, v)
+    /// Publishes a result of the off-path thread (a cross-check, a diagnosis verdict).
+    fn publish_offpath(&mut self, t: u64, suffix: &str, v: &Value) -> Result<()> {
+        if suffix == "alerts" {
+            tracing::info!(
+                structure = self.structure(),
+                "alert: {}",
+                v["message"].as_str().unwrap_or_default()
+            );
+        }
+        self.output(suffix, t, v)
     }
 
     /// Publishes one `rejected` message for the sets dropped at a full queue since the last

@@ -27,10 +27,12 @@ use super::checkpoint;
 use super::mcap::{
     ChannelSpec, McapWriter, RecordedMessage, from_ns, read_modal_sets, read_tolerant, to_ns, topic,
 };
-use crate::commands::load_model;
+use crate::commands::{load_model, load_spec};
 use crate::core::model::Model;
+use crate::core::model::spec::ModelSpec;
 use crate::pipeline::crosscheck::{CrosscheckConfig, crosscheck};
-use crate::pipeline::{Action, CrosscheckRequest, Tracker, TrackerConfig};
+use crate::pipeline::verdict::diagnosis_alert;
+use crate::pipeline::{Action, CrosscheckRequest, DiagnoseRequest, Tracker, TrackerConfig};
 use crate::settings::Settings;
 
 /// Schema of the replay checkpoint file.
@@ -112,23 +114,42 @@ impl ReplaySummary {
     }
 }
 
-/// Runs the cross-checks of every structure on one worker thread, in request order.
+/// Work done off the tracking path.
+pub enum Job {
+    Crosscheck(Box<CrosscheckRequest>),
+    Diagnose(Box<DiagnoseRequest>),
+}
+
+/// Runs the cross-checks and diagnoses of every structure on one worker thread, in request
+/// order.
 struct CrosscheckWorker {
-    jobs: Option<mpsc::Sender<(String, u64, CrosscheckRequest)>>,
-    results: mpsc::Receiver<(String, u64, Value)>,
+    jobs: Option<mpsc::Sender<(String, u64, Job)>>,
+    results: mpsc::Receiver<(String, u64, &'static str, Value)>,
     pending: usize,
     thread: Option<std::thread::JoinHandle<()>>,
 }
 
 impl CrosscheckWorker {
-    fn start(models: HashMap<String, Model>, cfg: CrosscheckConfig, shape_weight: f64) -> Self {
-        let (jtx, jrx) = mpsc::channel::<(String, u64, CrosscheckRequest)>();
+    fn start(
+        models: HashMap<String, (ModelSpec, Model)>,
+        cfg: CrosscheckConfig,
+        shape_weight: f64,
+    ) -> Self {
+        let (jtx, jrx) = mpsc::channel::<(String, u64, Job)>();
         let (rtx, rrx) = mpsc::channel();
         let thread = std::thread::spawn(move || {
             crate::core::sequential_numerics();
-            for (s, t, req) in jrx {
-                let v = crosscheck(&models[&s], &cfg, shape_weight, &req);
-                if rtx.send((s, t, v)).is_err() {
+            for (s, t, job) in jrx {
+                let (spec, model) = &models[&s];
+                let r = match job {
+                    Job::Crosscheck(req) => {
+                        ("crosscheck", crosscheck(model, &cfg, shape_weight, &req))
+                    }
+                    Job::Diagnose(req) => {
+                        ("alerts", diagnosis_alert(spec, model, shape_weight, &req))
+                    }
+                };
+                if rtx.send((s, t, r.0, r.1)).is_err() {
                     return;
                 }
             }
@@ -141,25 +162,32 @@ impl CrosscheckWorker {
         }
     }
 
-    fn submit(&mut self, structure: String, log_time: u64, req: CrosscheckRequest) -> Result<()> {
+    fn submit(&mut self, structure: String, log_time: u64, job: Job) -> Result<()> {
         self.jobs
             .as_ref()
             .ok_or_else(|| anyhow!("cross-check worker stopped"))?
-            .send((structure, log_time, req))
+            .send((structure, log_time, job))
             .map_err(|_| anyhow!("cross-check worker stopped"))?;
         self.pending += 1;
         Ok(())
     }
 
-    /// Waits for every submitted cross-check and writes its result.
+    /// Waits for every submitted job and writes its result.
     fn drain(&mut self, out: &mut Output) -> Result<()> {
         while self.pending > 0 {
-            let (s, t, v) = self
+            let (s, t, suffix, v) = self
                 .results
                 .recv()
                 .map_err(|_| anyhow!("cross-check worker died"))?;
             self.pending -= 1;
-            out.write(&topic(&s, "crosscheck"), t, &v)?;
+            if suffix == "alerts" {
+                tracing::info!(
+                    structure = s,
+                    "alert: {}",
+                    v["message"].as_str().unwrap_or_default()
+                );
+            }
+            out.write(&topic(&s, suffix), t, &v)?;
         }
         Ok(())
     }
@@ -259,7 +287,7 @@ pub fn replay(
         for suffix in OUTPUT_SUFFIXES {
             channels.push(ChannelSpec::for_structure(&s.name, suffix)?);
         }
-        models.insert(s.name.clone(), model);
+        models.insert(s.name.clone(), (load_spec(&s.model)?, model));
     }
     let tracker_cfg: TrackerConfig = settings.tracker.clone();
     let fp = fingerprint(settings);
@@ -324,8 +352,9 @@ pub fn replay(
             let syncs: Vec<u64> = serde_json::from_value(c["syncs"].clone())
                 .map_err(|e| anyhow!(ctx(&e.to_string())))?;
             for (name, model) in &models {
-                let t = Tracker::restore(model.clone(), tracker_cfg.clone(), &c["trackers"][name])
-                    .with_context(|| ctx(&format!("tracker of {name}")))?;
+                let t =
+                    Tracker::restore(model.1.clone(), tracker_cfg.clone(), &c["trackers"][name])
+                        .with_context(|| ctx(&format!("tracker of {name}")))?;
                 trackers.insert(name.clone(), t);
             }
             if !part.exists() {
@@ -377,7 +406,7 @@ pub fn replay(
             for (name, model) in &models {
                 trackers.insert(
                     name.clone(),
-                    Tracker::new(model.clone(), tracker_cfg.clone())?,
+                    Tracker::new(model.1.clone(), tracker_cfg.clone())?,
                 );
             }
             (0, McapWriter::create(&part, &channels)?, Vec::new())
@@ -451,7 +480,12 @@ pub fn replay(
                 Action::Crosscheck(req) => {
                     worker.drain(&mut out)?;
                     let t = to_ns(req.set.time)?;
-                    worker.submit(structure.clone(), t, *req)?;
+                    worker.submit(structure.clone(), t, Job::Crosscheck(req))?;
+                }
+                Action::Diagnose(req) => {
+                    worker.drain(&mut out)?;
+                    let t = to_ns(req.set.time)?;
+                    worker.submit(structure.clone(), t, Job::Diagnose(req))?;
                 }
                 Action::Checkpoint(_) => checkpoint_due = true,
             }

@@ -15,6 +15,7 @@ mod config;
 pub mod crosscheck;
 pub mod drift;
 mod outputs;
+pub mod verdict;
 
 use chrono::{DateTime, Utc};
 use serde::{Deserialize, Serialize};
@@ -61,6 +62,19 @@ pub enum Action {
     Crosscheck(Box<CrosscheckRequest>),
     /// Persist this state (atomically); [`Tracker::restore`] resumes from it.
     Checkpoint(Value),
+    /// Run the discrepancy workflow on the set that raised the model-inadequacy warning,
+    /// off the tracking path, and publish its verdict on `alerts`
+    /// ([`verdict::diagnosis_alert`]).
+    Diagnose(Box<DiagnoseRequest>),
+}
+
+/// What the diagnosis of a model-inadequacy warning needs.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DiagnoseRequest {
+    pub set: ModalSet,
+    /// ε of the set's update and its χ² bound.
+    pub epsilon: f64,
+    pub epsilon_bound: f64,
 }
 
 /// What a cross-check needs: the set and the tracked estimate it is compared with.
@@ -444,6 +458,13 @@ impl Tracker {
                     },
                 }),
             ));
+            if level == "warning" {
+                actions.push(Action::Diagnose(Box::new(DiagnoseRequest {
+                    set: set.clone(),
+                    epsilon: res.epsilon(),
+                    epsilon_bound: bound,
+                })));
+            }
         }
         if converged && let Some(b) = &st.baseline {
             for (l, &b_l) in b.iter().enumerate() {

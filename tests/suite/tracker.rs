@@ -252,6 +252,33 @@ fn unmodelled_mass_is_flagged_model_inadequate() {
     let k = index_of(&est, &raised["time"]);
     println!("mass from set {arrival}, model-inadequate at set {k}");
     assert!(k >= arrival, "raised before the mass arrived");
+    // The diagnosis verdict follows the warning: an added mass at the joint it was fixed
+    // to (J2L; the data cannot tell it from J2R, the other end of the rigid floor beam).
+    let verdict = alerts
+        .iter()
+        .find(|a| a["kind"] == "model-inadequate" && !a["diagnosis"].is_null())
+        .expect("a diagnosis verdict");
+    assert_eq!(verdict["time"], raised["time"]);
+    let named = &verdict["diagnosis"]["named"][0];
+    assert_eq!(named["effect"], "added-mass", "{verdict:#}");
+    let places: Vec<String> = std::iter::once(format!(
+        "added-mass@{}",
+        named["location"].as_str().unwrap()
+    ))
+    .chain(
+        named["indistinguishable_from"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_str().unwrap().to_string()),
+    )
+    .collect();
+    assert!(places.contains(&"added-mass@J2L".to_string()), "{places:?}");
+    let (v, sd) = (
+        named["value"].as_f64().unwrap(),
+        named["std"].as_f64().unwrap(),
+    );
+    assert!((v - 0.8).abs() <= 3.0 * sd, "{v} ± {sd} kg against 0.8 kg");
     let mut inadequate = false;
     for a in &alerts {
         if a["kind"] == "model-inadequate" {

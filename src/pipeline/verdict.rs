@@ -1,0 +1,114 @@
+//! The diagnosis verdict of a model-inadequacy warning (issue 6 item 3): the discrepancy
+//! workflow ([`crate::core::diagnosis`]) on the set that raised the warning, published as a
+//! follow-up `model-inadequate` alert (same set time, level `warning`) that carries the
+//! verdict under `diagnosis` and names it in its message. Pure: the drivers run it off the
+//! tracking path (the replay's and the daemon's worker threads).
+
+use serde_json::{Value, json};
+
+use super::{ALERT_SCHEMA, DiagnoseRequest, measured_data, rfc3339};
+use crate::core::diagnosis::{DiagnosisOptions, diagnose};
+use crate::core::model::Model;
+use crate::core::model::spec::ModelSpec;
+
+/// The follow-up alert payload (module docs).
+pub fn diagnosis_alert(
+    spec: &ModelSpec,
+    model: &Model,
+    shape_weight: f64,
+    req: &DiagnoseRequest,
+) -> Value {
+    let data = measured_data(&req.set, model, shape_weight);
+    let (diagnosis, message) = match diagnose(
+        spec,
+        &data,
+        &DiagnosisOptions::default(),
+        |_, _, _| {},
+    ) {
+        Ok(d) => {
+            let named: Vec<Value> = d
+                .named
+                .iter()
+                .map(|n| {
+                    json!({
+                        "effect": n.refit.effect,
+                        "location": n.refit.location,
+                        "value": n.refit.value,
+                        "std": if n.refit.std.is_finite() { json!(n.refit.std) } else { Value::Null },
+                        "unit": n.refit.unit,
+                        "likelihood_ratio": n.likelihood_ratio,
+                        "indistinguishable_from": n.indistinguishable_from.iter()
+                            .map(|o| format!("{}@{}", o.effect, o.location)).collect::<Vec<_>>(),
+                    })
+                })
+                .collect();
+            let message = if d.named.is_empty() {
+                format!(
+                    "diagnosis of the model-inadequacy warning: no candidate effect is significant \
+                     (ε {:.1} of the fitted model; {} candidates, Λ threshold {:.1}); \
+                     the misfit is not one of the catalogued effects",
+                    d.before.epsilon, d.n_candidates, d.threshold
+                )
+            } else {
+                format!(
+                    "diagnosis of the model-inadequacy warning: {}; ε {:.1} -> {:.1} with it in the model",
+                    d.named
+                        .iter()
+                        .map(|n| {
+                            let alt = if n.indistinguishable_from.is_empty() {
+                                String::new()
+                            } else {
+                                format!(
+                                    " (or {})",
+                                    n.indistinguishable_from
+                                        .iter()
+                                        .map(|o| o.location.as_str())
+                                        .collect::<Vec<_>>()
+                                        .join(", ")
+                                )
+                            };
+                            format!(
+                                "{}@{}{alt} = {:.3e} ± {:.1e} {}",
+                                n.refit.effect,
+                                n.refit.location,
+                                n.refit.value,
+                                n.refit.std,
+                                n.refit.unit
+                            )
+                        })
+                        .collect::<Vec<_>>()
+                        .join(", "),
+                    d.before.epsilon,
+                    d.after.epsilon
+                )
+            };
+            (
+                json!({
+                    "named": named,
+                    "epsilon_before": d.before.epsilon,
+                    "epsilon_after": d.after.epsilon,
+                    "candidates": d.n_candidates,
+                    "threshold": d.threshold,
+                }),
+                message,
+            )
+        }
+        Err(e) => (
+            json!({"error": e.to_string()}),
+            format!("diagnosis of the model-inadequacy warning failed: {e}"),
+        ),
+    };
+    json!({
+        "schema": ALERT_SCHEMA,
+        "structure": model.name,
+        "time": rfc3339(req.set.time),
+        "connection": null,
+        "kind": "model-inadequate",
+        "level": "warning",
+        "confidence": null,
+        "epsilon": req.epsilon,
+        "epsilon_bound": req.epsilon_bound,
+        "diagnosis": diagnosis,
+        "message": message,
+    })
+}
