@@ -44,6 +44,25 @@ pub fn load_spec(path: &Path) -> Result<crate::core::model::spec::ModelSpec> {
     toml::from_str(&text).with_context(|| format!("model file {}", path.display()))
 }
 
+/// The model file of a watched structure, read once: its text form (the diagnosis
+/// enriches it) and its assembly, checked to describe that structure.
+pub fn load_structure(
+    s: &crate::settings::StructureSettings,
+) -> Result<(crate::core::model::spec::ModelSpec, Model)> {
+    let spec = load_spec(&s.model)?;
+    let model =
+        Model::from_spec(&spec).with_context(|| format!("model file {}", s.model.display()))?;
+    if model.name != s.name {
+        bail!(
+            "configuration key structures: structure `{}` has model file {} describing `{}`",
+            s.name,
+            s.model.display(),
+            model.name
+        );
+    }
+    Ok((spec, model))
+}
+
 /// Reads and assembles a model file.
 pub fn load_model(path: &Path) -> Result<Model> {
     let text = std::fs::read_to_string(path)

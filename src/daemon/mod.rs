@@ -23,10 +23,10 @@ pub mod worker;
 use std::sync::mpsc;
 use std::time::Duration;
 
-use anyhow::{Context, Result, anyhow, bail};
+use anyhow::{Context, Result, anyhow};
 use zenoh::Wait;
 
-use crate::commands::load_model;
+use crate::commands::load_structure;
 use crate::io::checkpoint;
 use crate::io::mcap::topic;
 use crate::io::zenoh::{session_config, zerr};
@@ -56,15 +56,7 @@ pub async fn run(settings: Settings) -> Result<()> {
     let mut queryables = Vec::new();
     let mut shared_all = Vec::new();
     for s in &settings.structures {
-        let model = load_model(&s.model)?;
-        if model.name != s.name {
-            bail!(
-                "configuration key structures: structure `{}` has model file {} describing `{}`",
-                s.name,
-                s.model.display(),
-                model.name
-            );
-        }
+        let (spec, model) = load_structure(s)?;
         let ckpt = d.state_dir.join(format!("{}.checkpoint.json", s.name));
         let tracker = match checkpoint::read(&ckpt)? {
             Some(v) => {
@@ -93,7 +85,7 @@ pub async fn run(settings: Settings) -> Result<()> {
         )?;
         let shared = Shared::new(&s.name, d.queue);
         let worker = Worker::new(
-            crate::commands::load_spec(&s.model)?,
+            spec,
             tracker,
             session.clone(),
             log,

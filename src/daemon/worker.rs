@@ -253,20 +253,7 @@ impl Worker {
                     payload,
                     ..
                 } => {
-                    match suffix {
-                        "rejected" => tracing::warn!(
-                            structure = s,
-                            field = payload["field"].as_str().unwrap_or_default(),
-                            "rejected set: {}",
-                            payload["reason"].as_str().unwrap_or_default()
-                        ),
-                        "alerts" => tracing::info!(
-                            structure = s,
-                            "alert: {}",
-                            payload["message"].as_str().unwrap_or_default()
-                        ),
-                        _ => {}
-                    }
+                    crate::pipeline::log_output(&s, suffix, &payload);
                     self.output(suffix, to_ns(time)?, &payload)?;
                 }
                 Action::Diagnose(req) => {
@@ -343,13 +330,7 @@ impl Worker {
 
     /// Publishes a result of the off-path thread (a cross-check, a diagnosis verdict).
     fn publish_offpath(&mut self, t: u64, suffix: &str, v: &Value) -> Result<()> {
-        if suffix == "alerts" {
-            tracing::info!(
-                structure = self.structure(),
-                "alert: {}",
-                v["message"].as_str().unwrap_or_default()
-            );
-        }
+        crate::pipeline::log_output(self.structure(), suffix, v);
         self.output(suffix, t, v)
     }
 

@@ -27,7 +27,7 @@ use super::checkpoint;
 use super::mcap::{
     ChannelSpec, McapWriter, RecordedMessage, from_ns, read_modal_sets, read_tolerant, to_ns, topic,
 };
-use crate::commands::{load_model, load_spec};
+use crate::commands::load_structure;
 use crate::core::model::Model;
 use crate::core::model::spec::ModelSpec;
 use crate::pipeline::crosscheck::{CrosscheckConfig, crosscheck};
@@ -180,13 +180,7 @@ impl CrosscheckWorker {
                 .recv()
                 .map_err(|_| anyhow!("cross-check worker died"))?;
             self.pending -= 1;
-            if suffix == "alerts" {
-                tracing::info!(
-                    structure = s,
-                    "alert: {}",
-                    v["message"].as_str().unwrap_or_default()
-                );
-            }
+            crate::pipeline::log_output(&s, suffix, &v);
             out.write(&topic(&s, suffix), t, &v)?;
         }
         Ok(())
@@ -275,19 +269,10 @@ pub fn replay(
     let mut models = HashMap::new();
     let mut channels = Vec::new();
     for s in &settings.structures {
-        let model = load_model(&s.model)?;
-        if model.name != s.name {
-            bail!(
-                "configuration key structures: structure `{}` has model file {} describing `{}`",
-                s.name,
-                s.model.display(),
-                model.name
-            );
-        }
         for suffix in OUTPUT_SUFFIXES {
             channels.push(ChannelSpec::for_structure(&s.name, suffix)?);
         }
-        models.insert(s.name.clone(), (load_spec(&s.model)?, model));
+        models.insert(s.name.clone(), load_structure(s)?);
     }
     let tracker_cfg: TrackerConfig = settings.tracker.clone();
     let fp = fingerprint(settings);
@@ -461,20 +446,7 @@ pub fn replay(
                     ..
                 } => {
                     let t = to_ns(time)?;
-                    if suffix == "rejected" {
-                        tracing::warn!(
-                            structure,
-                            field = payload["field"].as_str().unwrap_or_default(),
-                            "rejected set: {}",
-                            payload["reason"].as_str().unwrap_or_default()
-                        );
-                    } else if suffix == "alerts" {
-                        tracing::info!(
-                            structure,
-                            "alert: {}",
-                            payload["message"].as_str().unwrap_or_default()
-                        );
-                    }
+                    crate::pipeline::log_output(structure, suffix, &payload);
                     out.write(&topic(structure, suffix), t, &payload)?;
                 }
                 Action::Crosscheck(req) => {

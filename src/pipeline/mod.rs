@@ -68,6 +68,24 @@ pub enum Action {
     Diagnose(Box<DiagnoseRequest>),
 }
 
+/// Logs an output a driver publishes: a rejection as a warning, an alert as information.
+pub fn log_output(structure: &str, suffix: &str, payload: &Value) {
+    match suffix {
+        "rejected" => tracing::warn!(
+            structure,
+            field = payload["field"].as_str().unwrap_or_default(),
+            "rejected set: {}",
+            payload["reason"].as_str().unwrap_or_default()
+        ),
+        "alerts" => tracing::info!(
+            structure,
+            "alert: {}",
+            payload["message"].as_str().unwrap_or_default()
+        ),
+        _ => {}
+    }
+}
+
 /// What the diagnosis of a model-inadequacy warning needs.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DiagnoseRequest {
