@@ -128,6 +128,7 @@ fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
         max_iterations: args.max_iter.unwrap_or(200),
         final_step: FinalStep::Evaluate,
         sigma_tol: None,
+        eps_tol: None,
     };
     let mut mm = ModeMatching::new(Evaluator::new(model)?);
     // The paper's fixed-κ Gauss–Newton runs as published; the default is globalized.

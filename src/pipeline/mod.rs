@@ -251,6 +251,7 @@ impl Tracker {
         let mm = ModeMatching::new(evaluator);
         let opts = ModeMatchingOptions {
             sigma_tol: Some(cfg.step_tolerance),
+            eps_tol: None,
             final_step: FinalStep::Extrapolate,
             ..Default::default()
         };

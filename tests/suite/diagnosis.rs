@@ -419,7 +419,7 @@ fn detectability_table() {
         (
             "support-flexibility",
             "BL.rz",
-            &[1e5, 5e4, 2e4, 1e4, 5e3],
+            &[1e7, 3e6, 1e6, 3e5, 1e5],
             false,
         ),
         (

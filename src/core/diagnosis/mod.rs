@@ -178,6 +178,11 @@ fn mm_options() -> ModeMatchingOptions {
         max_iterations: 100,
         final_step: FinalStep::Evaluate,
         sigma_tol: Some(0.01),
+        // ε to 1e-3: far below what the tests (Λ against ~24, Δε 6) and the profile's
+        // curvature (ε differences ≳ 0.05 over ±5 % of the value) resolve. Without it, fits
+        // of a candidate that cannot explain the data creep along a flat valley of ε for
+        // 20–50 iterations and stall.
+        eps_tol: Some(1e-3),
     }
 }
 
@@ -518,37 +523,43 @@ fn refit(
             Box::new(move |t| t * h),
         ),
     };
-    // Starts of every inner fit: the fitted θ without the effect, the nominal θ, and the θ
-    // of the best profile point so far (continuation).
+    // Starts of the inner fits: the fitted θ without the effect, the nominal θ, and the θ of
+    // the best profile point so far (continuation). All three at the first point and at the
+    // minimum found; in between the continuation alone (its fits are short, u moves little).
+    // Should the minimum's other starts find a lower ε than the continuation did, the path
+    // followed a valley that is not the lowest: the search is repeated with all three
+    // everywhere.
     let nominal = Model::from_spec(spec).ok()?.nominal_theta();
     let best = std::cell::RefCell::new((f64::INFINITY, theta0.to_vec()));
-    let eps_at = |u: f64| {
+    let eps_at = |u: f64, all: bool| {
         let last = best.borrow().1.clone();
-        let r = profile_point(
-            spec,
-            effect,
-            &c.location,
-            u,
-            data,
-            &[theta0, &nominal, &last],
-        );
+        let starts: &[&[f64]] = if all || !best.borrow().0.is_finite() {
+            &[theta0, &nominal, &last]
+        } else {
+            &[&last]
+        };
+        let r = profile_point(spec, effect, &c.location, u, data, starts);
         if r.0 < best.borrow().0 {
             *best.borrow_mut() = r.clone();
         }
         r
     };
-    let (t, eps) = minimize_1d(|t| eps_at(to_u(t)).0, t0, d, 2e-3);
+    let (mut t, mut eps) = minimize_1d(|t| eps_at(to_u(t), false).0, t0, d, 2e-3);
     if !eps.is_finite() {
         return None;
     }
+    let (eps_all, _) = eps_at(to_u(t), true);
+    if eps_all < eps - 1e-2 {
+        (t, eps) = minimize_1d(|t| eps_at(to_u(t), true).0, t, d, 2e-3);
+    }
     let u = to_u(t);
-    let (_, theta) = eps_at(u);
+    let (_, theta) = eps_at(u, true);
     // Laplace: σ_u² = 2 / ε''(u), by a three-point difference around the minimum.
     let du = match effect.sign() {
         Sign::Positive => 0.05 * u,
         Sign::Any => 0.05 * u.abs().max(h),
     };
-    let (em, ep) = (eps_at(u - du).0, eps_at(u + du).0);
+    let (em, ep) = (eps_at(u - du, false).0, eps_at(u + du, false).0);
     let curvature = (ep - 2.0 * eps + em) / (du * du);
     let std_u = if curvature > 0.0 {
         (2.0 / curvature).sqrt()

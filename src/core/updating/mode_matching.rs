@@ -47,6 +47,11 @@ pub struct ModeMatchingOptions {
     /// negligible against the estimate's own uncertainty, whatever its relative size. For
     /// trackers, whose estimate of every set is only known to its std.
     pub sigma_tol: Option<f64>,
+    /// Also stop when the undamped step's predicted decrease of ε, `−δᵀg` (the
+    /// Gauss–Newton model's distance to its minimum), is below this: ε is then known to
+    /// that accuracy, which is all a profile of ε needs, while θ may still creep along a
+    /// flat valley for dozens of iterations.
+    pub eps_tol: Option<f64>,
 }
 
 impl Default for ModeMatchingOptions {
@@ -57,6 +62,7 @@ impl Default for ModeMatchingOptions {
             max_iterations: 200,
             final_step: FinalStep::Evaluate,
             sigma_tol: None,
+            eps_tol: None,
         }
     }
 }
@@ -230,7 +236,10 @@ impl ModeMatching {
                         && (gn.iter().all(|d| d.exp_m1().abs() < opts.tol)
                             || opts
                                 .sigma_tol
-                                .is_some_and(|t| within_std(llt, &gn, t, data, &ev)))
+                                .is_some_and(|t| within_std(llt, &gn, t, data, &ev))
+                            || opts.eps_tol.is_some_and(|t| {
+                                -gn.iter().zip(g.iter()).map(|(d, gi)| d * gi).sum::<f64>() < t
+                            }))
                     {
                         let new: Vec<f64> = (0..p).map(|i| theta[i] * gn[i].exp()).collect();
                         match opts.final_step {
