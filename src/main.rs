@@ -3,7 +3,7 @@
 use std::process::ExitCode;
 
 use boltwatch::commands::{
-    bayes, diagnose, modes, publish, replay, report, run, scenario, simulate, update,
+    bayes, diagnose, export, modes, publish, replay, report, run, scenario, simulate, update,
 };
 use clap::{Parser, Subcommand};
 
@@ -41,6 +41,8 @@ enum Command {
     Run(run::RunArgs),
     /// Publish a recording's modal sets over Zenoh (a field simulator for demos and tests).
     Publish(publish::PublishArgs),
+    /// Write a model's K0, K_l and M (Matrix Market) and its DOFs and channels, for other tools.
+    ExportMatrices(export::ExportArgs),
 }
 
 fn main() -> ExitCode {
@@ -57,6 +59,7 @@ fn main() -> ExitCode {
         Command::Report(a) => report::run(a),
         Command::Run(a) => run::run(a),
         Command::Publish(a) => publish::run(a),
+        Command::ExportMatrices(a) => export::run(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

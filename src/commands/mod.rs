@@ -2,6 +2,7 @@
 
 pub mod bayes;
 pub mod diagnose;
+pub mod export;
 pub mod modes;
 pub mod publish;
 pub mod replay;

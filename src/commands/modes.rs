@@ -6,7 +6,7 @@ use anyhow::{Result, bail};
 use serde_json::json;
 
 use super::{ModelAtTheta, write_json};
-use crate::core::modal::{DenseEigen, EigenSolver};
+use crate::core::modal::solver_for;
 
 #[derive(Debug, clap::Args)]
 pub struct ModesArgs {
@@ -29,7 +29,7 @@ pub fn run(args: &ModesArgs) -> Result<()> {
             model.n_dof()
         );
     }
-    let mut solver = DenseEigen::new(&model)?;
+    let mut solver = solver_for(&model)?;
     let eig = solver.solve(&model, &theta, args.n)?;
     let mut phi = vec![0.0; model.n_dof()];
     let mut shapes = Vec::with_capacity(args.n);

@@ -9,7 +9,7 @@ use rand_chacha::ChaCha8Rng;
 use super::{ModelAtTheta, write_json};
 use crate::contract::modal_set::{MeasuredMode, ModalSet};
 use crate::core::diagnosis::effects::Injection;
-use crate::core::modal::DenseEigen;
+use crate::core::modal::solver_for;
 use crate::core::simulate::{Noise, simulate_modes};
 
 #[derive(Debug, clap::Args)]
@@ -88,9 +88,9 @@ pub fn run(args: &SimulateArgs) -> Result<()> {
             shape_nsd: args.shape_nsd,
         }
     };
-    let mut solver = DenseEigen::new(&model)?;
+    let mut solver = solver_for(&model)?;
     let mut rng = ChaCha8Rng::seed_from_u64(args.seed);
-    let modes = simulate_modes(&model, &mut solver, &theta, args.modes, noise, &mut rng)?;
+    let modes = simulate_modes(&model, &mut *solver, &theta, args.modes, noise, &mut rng)?;
     let positive = |v: f64| (v > 0.0).then_some(v);
     let set = ModalSet {
         structure: model.name.clone(),

@@ -8,7 +8,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
-use crate::core::modal::{DenseEigen, EigenSolver, ModalError};
+use crate::core::modal::{EigenSolver, ModalError, solver_for};
 use crate::core::model::Model;
 use crate::core::updating::{MeasuredData, RawMode};
 
@@ -83,7 +83,7 @@ pub fn simulated_measured_data(
     noisy: bool,
     seed: u64,
 ) -> Result<MeasuredData, ModalError> {
-    let mut solver = DenseEigen::new(model)?;
+    let mut solver = solver_for(model)?;
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let noise = if noisy {
         stated
@@ -93,7 +93,7 @@ pub fn simulated_measured_data(
             shape_nsd: 0.0,
         }
     };
-    let modes = simulate_modes(model, &mut solver, theta, n_modes, noise, &mut rng)?;
+    let modes = simulate_modes(model, &mut *solver, theta, n_modes, noise, &mut rng)?;
     let raw: Vec<RawMode> = modes
         .iter()
         .map(|m| RawMode {

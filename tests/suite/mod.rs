@@ -10,4 +10,5 @@ mod modal_set;
 mod mode_matching;
 mod replay_cli;
 mod sensitivity;
+mod solid;
 mod tracker;

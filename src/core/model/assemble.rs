@@ -91,6 +91,28 @@ impl Dofs {
 
 /// Assembles the model; every failure names the offending entry.
 pub(super) fn assemble(spec: &ModelSpec) -> Result<Model, ModelError> {
+    if let Some(solid) = &spec.solid_frame {
+        let frame_entries = [
+            ("materials", spec.materials.len()),
+            ("sections", spec.sections.len()),
+            ("nodes", spec.nodes.len()),
+            ("joints", spec.joints.len()),
+            ("members", spec.members.len()),
+            ("supports", spec.supports.len()),
+            ("connections", spec.connections.len()),
+            ("masses", spec.masses.len()),
+            ("springs", spec.springs.len()),
+            ("parameters", spec.parameters.len()),
+            ("channels", spec.channels.len()),
+        ];
+        if let Some((key, _)) = frame_entries.iter().find(|(_, n)| *n > 0) {
+            return Err(invalid(
+                key.to_string(),
+                "a [solid_frame] model generates its own structure; remove the frame entries",
+            ));
+        }
+        return super::solid::assemble(&spec.name, solid, &spec.bayesian);
+    }
     let nodes = index_names("node", spec.nodes.iter().map(|n| n.name.as_str()))?;
     let members = index_names("member", spec.members.iter().map(|m| m.name.as_str()))?;
     let materials = index_names("material", spec.materials.iter().map(|m| m.name.as_str()))?;
@@ -463,13 +485,37 @@ pub(super) fn assemble(spec: &ModelSpec) -> Result<Model, ModelError> {
         });
     }
 
-    let n = dofs.labels.len();
+    finish(
+        &spec.name,
+        dofs.labels,
+        &acc,
+        parameters,
+        connections,
+        channels,
+        spec.bayesian.clone(),
+    )
+}
+
+/// The common end of every assembly: builds `K0`, the `K_l` and `M` from their
+/// accumulators (in that order), checks that every DOF has mass (a DOF without makes `M`
+/// singular; name it rather than fail in the eigen solver) and forms the union pattern.
+pub(super) fn finish(
+    name: &str,
+    labels: Vec<String>,
+    accs: &[Accumulator],
+    parameters: Vec<Parameter>,
+    connections: Vec<Connection>,
+    channels: Vec<Channel>,
+    bayesian: super::spec::BayesSpec,
+) -> Result<Model, ModelError> {
+    let n = labels.len();
     if n == 0 {
         return Err(invalid("nodes", "the model has no free DOF"));
     }
-    let mats: Vec<_> = acc.iter().map(|a| a.build(n)).collect();
-    let m = mats[mass_target].clone();
-    // A DOF without mass makes M singular; name it rather than fail in the eigen solver.
+    let p = parameters.len();
+    debug_assert_eq!(accs.len(), p + 2);
+    let mats: Vec<_> = accs.iter().map(|a| a.build(n)).collect();
+    let m = mats[p + 1].clone();
     let mut diag = vec![0.0; n];
     {
         let s = m.symbolic();
@@ -483,7 +529,7 @@ pub(super) fn assemble(spec: &ModelSpec) -> Result<Model, ModelError> {
     }
     if let Some(j) = diag.iter().position(|&v| v <= 0.0) {
         return Err(ModelError::MasslessDof {
-            dof: dofs.labels[j].clone(),
+            dof: labels[j].clone(),
         });
     }
     let refs: Vec<_> = mats.iter().collect();
@@ -492,8 +538,8 @@ pub(super) fn assemble(spec: &ModelSpec) -> Result<Model, ModelError> {
     let k0 = it.next().expect("K0 is always assembled");
     let k_params: Vec<_> = it.by_ref().take(p).collect();
     Ok(Model {
-        name: spec.name.clone(),
-        dof_labels: dofs.labels,
+        name: name.to_string(),
+        dof_labels: labels,
         k0,
         k_params,
         m,
@@ -501,7 +547,7 @@ pub(super) fn assemble(spec: &ModelSpec) -> Result<Model, ModelError> {
         connections,
         channels,
         union,
-        bayesian: spec.bayesian.clone(),
+        bayesian,
     })
 }
 

@@ -9,6 +9,8 @@
 
 mod assemble;
 pub mod element;
+pub mod hex20;
+pub mod solid;
 pub mod sparse;
 pub mod spec;
 

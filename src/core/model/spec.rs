@@ -33,6 +33,7 @@ pub struct ModelSpec {
     pub materials: Vec<MaterialSpec>,
     #[serde(default)]
     pub sections: Vec<SectionSpec>,
+    #[serde(default)]
     pub nodes: Vec<NodeSpec>,
     #[serde(default)]
     pub joints: Vec<JointSpec>,
@@ -50,6 +51,10 @@ pub struct ModelSpec {
     pub parameters: Vec<ParameterSpec>,
     #[serde(default)]
     pub channels: Vec<ChannelSpec>,
+    /// A solid (20-node hexahedra) multi-bay frame generated from a few dimensions, instead
+    /// of the frame entries above (DESIGN §4.3).
+    #[serde(default)]
+    pub solid_frame: Option<super::solid::SolidFrameSpec>,
     /// Defaults of the Bayesian MAP (14) for this model; command-line flags override them.
     #[serde(default)]
     pub bayesian: BayesSpec,
