@@ -21,7 +21,10 @@ pub struct ModesArgs {
 }
 
 pub fn run(args: &ModesArgs) -> Result<()> {
+    let start = std::time::Instant::now();
     let (model, theta) = args.at.load()?;
+    let assembled = start.elapsed().as_secs_f64();
+    crate::core::numerics_for(&model);
     if args.n == 0 || args.n > model.n_dof() {
         bail!(
             "-n = {} must be between 1 and the model's {} DOFs",
@@ -31,6 +34,18 @@ pub fn run(args: &ModesArgs) -> Result<()> {
     }
     let mut solver = solver_for(&model)?;
     let eig = solver.solve(&model, &theta, args.n)?;
+    eprintln!(
+        "{}: {} DOF assembled in {assembled:.2} s; {} modes ({} solver) in {:.2} s",
+        model.name,
+        model.n_dof(),
+        args.n,
+        if model.n_dof() >= crate::core::modal::SPARSE_FROM_DOF {
+            "sparse shift-invert Krylov"
+        } else {
+            "dense"
+        },
+        start.elapsed().as_secs_f64() - assembled
+    );
     let mut phi = vec![0.0; model.n_dof()];
     let mut shapes = Vec::with_capacity(args.n);
     for k in 0..args.n {

@@ -59,6 +59,7 @@ pub fn run(args: &SimulateArgs) -> Result<()> {
         let theta = super::parse_theta(&model, args.at.theta.as_deref(), "--theta")?;
         (model, theta)
     };
+    crate::core::numerics_for(&model);
     for (name, v) in [
         ("--freq-cov", args.freq_cov),
         ("--shape-nsd", args.shape_nsd),

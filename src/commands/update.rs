@@ -70,6 +70,7 @@ pub fn load_inputs(
     shape_weight: f64,
 ) -> Result<Inputs> {
     let model = load_model(model)?;
+    crate::core::numerics_for(&model);
     let theta0 = parse_theta(&model, theta0, "--theta0")?;
     let set = load_set(&model, data)?;
     if !(shape_weight.is_finite() && shape_weight > 0.0) {

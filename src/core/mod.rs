@@ -15,3 +15,14 @@ pub mod updating;
 pub fn sequential_numerics() {
     faer::set_global_parallelism(faer::Par::Seq);
 }
+
+/// For a command working on one model: faer on every core when the model is one the sparse
+/// solver handles (its factorizations and block products are large enough to gain), else
+/// sequential.
+pub fn numerics_for(model: &model::Model) {
+    if model.n_dof() >= modal::SPARSE_FROM_DOF {
+        faer::set_global_parallelism(faer::Par::rayon(0));
+    } else {
+        sequential_numerics();
+    }
+}

@@ -1185,7 +1185,10 @@ fn sigkill_then_restart_recovers_the_log_and_the_timed_checkpoint() {
         .iter()
         .filter(|p| p.to_string_lossy().ends_with(".mcap.part"))
         .count();
-    assert_eq!(parts, 1, "one file was being written: {files:?}");
+    // Usually one file is being written. The log opens its next file at the next message,
+    // so when the last message written filled a file (it was closed and renamed) there is
+    // none (seen once in many runs); everything below holds either way.
+    assert!(parts <= 1, "at most one file was being written: {files:?}");
     assert!(files.len() >= 3, "1 MiB files rotated: {files:?}");
 
     let mut daemon = daemon.restart();

@@ -1,7 +1,7 @@
 //! Sparse symmetric matrices as the model holds them, and the union pattern on which
 //! `K(θ) − λM` is formed without re-deriving structure.
 
-use faer::sparse::{SparseColMat, Triplet};
+use faer::sparse::{SparseColMat, SymbolicSparseColMat, Triplet};
 
 /// Sparse matrix in CSC form with `usize` indices.
 pub type Csc = SparseColMat<usize, f64>;
@@ -39,10 +39,53 @@ impl Accumulator {
     }
 
     pub fn build(&self, n: usize) -> Csc {
-        // Triplets are in range by construction; an empty matrix is valid.
-        SparseColMat::try_new_from_triplets(n, n, &self.trips)
-            .expect("assembly produced an out-of-range triplet")
+        csc_from_triplets(n, self.trips.iter().map(|t| (t.row, t.col, t.val)))
     }
+}
+
+/// An `n × n` CSC matrix from `(row, col, value)` entries, duplicates summed: a counting
+/// sort by column, then each column's rows sorted and merged (O(N + Σ c log c) for N
+/// entries and c per column; the generic triplet constructor sorts all N).
+pub fn csc_from_triplets(
+    n: usize,
+    entries: impl Iterator<Item = (usize, usize, f64)> + Clone,
+) -> Csc {
+    let mut count = vec![0usize; n + 1];
+    for (i, j, _) in entries.clone() {
+        assert!(
+            i < n && j < n,
+            "assembly produced an out-of-range entry ({i}, {j})"
+        );
+        count[j + 1] += 1;
+    }
+    for j in 0..n {
+        count[j + 1] += count[j];
+    }
+    let mut next = count.clone();
+    let mut bucket = vec![(0usize, 0.0f64); count[n]];
+    for (i, j, v) in entries {
+        bucket[next[j]] = (i, v);
+        next[j] += 1;
+    }
+    let mut col_ptr = Vec::with_capacity(n + 1);
+    let mut row_idx = Vec::with_capacity(bucket.len());
+    let mut val = Vec::with_capacity(bucket.len());
+    col_ptr.push(0);
+    for j in 0..n {
+        let col = &mut bucket[count[j]..count[j + 1]];
+        col.sort_by_key(|e| e.0);
+        for &(i, v) in col.iter() {
+            if row_idx.len() > col_ptr[j] && row_idx.last() == Some(&i) {
+                *val.last_mut().expect("a value per row index") += v;
+            } else {
+                row_idx.push(i);
+                val.push(v);
+            }
+        }
+        col_ptr.push(row_idx.len());
+    }
+    let symbolic = SymbolicSparseColMat::new_checked(n, n, col_ptr, None, row_idx);
+    SparseColMat::new(symbolic, val)
 }
 
 /// `y += a · A x` for a sparse `A`.
@@ -76,16 +119,13 @@ impl UnionPattern {
             let s = m.symbolic();
             for j in 0..n {
                 for &i in s.row_idx_of_col_raw(j) {
-                    trips.push(Triplet::new(i, j, 0.0));
+                    trips.push((i, j, 0.0));
                 }
             }
         }
         // Also keep the full diagonal so a row/column can always be pinned to identity.
-        for i in 0..n {
-            trips.push(Triplet::new(i, i, 0.0));
-        }
-        let pattern = SparseColMat::try_new_from_triplets(n, n, &trips)
-            .expect("union of valid patterns is valid");
+        trips.extend((0..n).map(|i| (i, i, 0.0)));
+        let pattern = csc_from_triplets(n, trips.iter().copied());
         let ps = pattern.symbolic();
         let maps = mats
             .iter()
