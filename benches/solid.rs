@@ -56,8 +56,7 @@ fn bench_iteration(c: &mut Criterion) {
         })
     });
 
-    // The evaluator's solve: 16 modes (the 6 measured and 10 candidates for pairing),
-    // warm-started from the last call's Ritz block as in an update.
+    // The evaluator's solve: 16 modes (the 6 measured and 10 candidates for pairing).
     let n_cand = boltwatch::core::updating::residual::candidate_count(6, model.n_dof());
     let mut solver = SparseEigen::new(&model).unwrap();
     group.bench_function("eigen_solve", |b| {
