@@ -128,8 +128,10 @@ pub fn run(args: &PublishArgs) -> Result<()> {
                 .map_err(zerr(format!("cannot publish on {}", m.topic)))?;
         }
         let secs = start.elapsed().as_secs_f64();
-        // Let the last messages leave before the session closes.
-        tokio::time::sleep(Duration::from_millis(200)).await;
+        // Let the last messages leave before the session closes (closing does not wait for
+        // the transport's queues). 200 ms was too short through a TLS router on a loaded
+        // machine: a CI run saw 4 of 20 sets arrive.
+        tokio::time::sleep(Duration::from_millis(1000)).await;
         session.close().await.map_err(zerr("cannot close the Zenoh session"))?;
         println!(
             "published {} modal sets of {} on {} ({secs:.1} s, {:.0} sets/s)",
