@@ -30,7 +30,7 @@ fn unknown(field: impl Into<String>, what: &'static str, name: &str) -> ModelErr
     }
 }
 
-fn check_positive(field: String, v: f64) -> Result<(), ModelError> {
+pub(super) fn check_positive(field: String, v: f64) -> Result<(), ModelError> {
     if v.is_finite() && v > 0.0 {
         Ok(())
     } else {

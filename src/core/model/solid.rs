@@ -186,17 +186,6 @@ fn invalid(field: &str, reason: impl Into<String>) -> ModelError {
     }
 }
 
-fn positive(field: &str, v: f64) -> Result<(), ModelError> {
-    if v.is_finite() && v > 0.0 {
-        Ok(())
-    } else {
-        Err(invalid(
-            field,
-            format!("must be a finite number > 0, got {v}"),
-        ))
-    }
-}
-
 /// The axis (0 = x, 2 = z) along which a beam runs.
 fn beam_axis(name: &str) -> usize {
     if name.starts_with('V') { 2 } else { 0 }
@@ -224,7 +213,7 @@ pub(super) fn assemble(
         ("solid_frame.material.rho", sf.material.rho),
         ("solid_frame.spring_factor", sf.spring_factor),
     ] {
-        positive(f, v)?;
+        super::assemble::check_positive(f.to_string(), v)?;
     }
     if !(sf.material.nu > -1.0 && sf.material.nu < 0.5) {
         return Err(invalid(
