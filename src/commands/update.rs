@@ -132,11 +132,21 @@ fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
         eps_tol: None,
     };
     let mut mm = ModeMatching::new(Evaluator::new(model)?);
+    let pb = iteration_progress("mode matching");
+    let bar = pb.clone();
+    mm.set_progress(Box::new(move |k, rec| {
+        bar.set_message(format!(
+            "iteration {k}: ε = {:.4}, θ = {}",
+            rec.epsilon,
+            fmt_theta(&rec.theta)
+        ));
+    }));
     // The paper's fixed-κ Gauss–Newton runs as published; the default is globalized.
     let (res, path) = match opts.step {
         StepControl::FixedKappa(_) => (mm.run(model, data, theta0, &opts)?, StartPath::Given),
         StepControl::LevenbergMarquardt => mm.run_global(model, data, theta0, &opts)?,
     };
+    pb.finish_and_clear();
     let start = match path {
         StartPath::Given => "theta0".to_string(),
         StartPath::Restart { value } => {
@@ -183,6 +193,25 @@ fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
     print_table(model, set, &res, &std);
     println!("found from: {start}");
     Ok(())
+}
+
+/// A spinner on stderr for an iterative update, its message replaced at every iterate
+/// (hidden when stderr is not a terminal).
+pub fn iteration_progress(what: &str) -> indicatif::ProgressBar {
+    let pb = indicatif::ProgressBar::new_spinner();
+    pb.set_style(
+        indicatif::ProgressStyle::with_template("{spinner} {prefix} [{elapsed}] {msg}")
+            .expect("valid template"),
+    );
+    pb.set_prefix(what.to_string());
+    pb.enable_steady_tick(std::time::Duration::from_millis(120));
+    pb
+}
+
+/// θ as `(0.3600, 1.0000, …)`.
+pub fn fmt_theta(theta: &[f64]) -> String {
+    let v: Vec<String> = theta.iter().map(|t| format!("{t:.4}")).collect();
+    format!("({})", v.join(", "))
 }
 
 fn print_table(

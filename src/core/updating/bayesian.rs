@@ -18,17 +18,19 @@
 //! The paper's substeps (22) and (23) carry two typos, corrected here from `∂J_p = 0`:
 //! in (22) `σ_c⁻¹ g_λ` is `σ_c⁻² g_λ`, and in (23) `G_θᵀ g_θ` is `σ_c⁻² G_θᵀ g_θ`.
 //!
-//! Linear algebra is dense (models up to a few hundred DOFs): each φ substep is a
-//! Householder QR of `C_m = [σ_c⁻¹ A_m; W^{1/2} L_o]`, and the Hessian of `F` is assembled
-//! from `Qᵀ J_y` and `R⁻ᵀ E` so that the large terms of the Schur complement cancel
-//! analytically, not in floating point (see [`BayesProblem::reduced`]). The large model
-//! (issue 7) needs sparse φ-substeps.
+//! Small models (below [`SPARSE_FROM_DOF`] DOFs) use dense linear algebra: each φ substep
+//! is a Householder QR of `C_m = [σ_c⁻¹ A_m; W^{1/2} L_o]`, and the Hessian of `F` is
+//! assembled from `Qᵀ J_y` and `R⁻ᵀ E` so that the large terms of the Schur complement
+//! cancel analytically, not in floating point (see [`BayesProblem::reduced`]). Large models
+//! use sparse φ substeps: the same least-squares problems through their augmented systems,
+//! factored by a sparse LU ([`augmented`]), which deliver the cancelled quantities directly.
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::householder;
 use faer::linalg::solvers::{Qr, Solve};
 use faer::{Col, Conj, Mat, MatMut, Par, Side};
 
+mod augmented;
 mod covariance;
 mod sweep;
 pub use covariance::{LCurvePoint, ThresholdFree, Tsvd, l_curve_corner};
@@ -38,7 +40,9 @@ pub use sweep::{
 };
 
 use super::data::MeasuredData;
+use crate::core::modal::SPARSE_FROM_DOF;
 use crate::core::model::Model;
+use augmented::{AugmentedFactor, AugmentedSymbolic};
 use crate::core::model::sparse::{Csc, spmv_add};
 
 /// Failures of the Bayesian solver.
@@ -54,6 +58,14 @@ pub enum BayesError {
     PriorLength { expected: usize, got: usize },
     #[error("the Hessian of the reduced objective is not positive definite: not at a minimum")]
     NotAMinimum,
+    #[error(
+        "{what} is dense in the {n_dof} DOFs of the model; it is only available below {limit} DOFs"
+    )]
+    TooLarge {
+        what: &'static str,
+        n_dof: usize,
+        limit: usize,
+    },
 }
 
 /// The weights of (14) beyond the data: `σ_c` and the prior `θ0`, `Σ_θ = diag(prior_std²)`.
@@ -132,8 +144,11 @@ pub struct BayesProblem {
     n: usize,
     p: usize,
     model: Model,
-    /// Dense `M` and `K0`, for forming `A_m` in the φ substep's QR.
-    m_dense: Mat<f64>,
+    /// Dense `M`, for forming `A_m` in the φ substep's QR; `None` for a large model, whose
+    /// φ substeps are sparse.
+    m_dense: Option<Mat<f64>>,
+    /// Symbolic analyses of the sparse φ substeps (large models).
+    augmented: AugmentedSymbolic,
     modes: Vec<BayesMode>,
     inv_s2: f64,
     prior_mean: Vec<f64>,
@@ -161,6 +176,54 @@ pub struct Reduced {
     /// of the gradient under measurement noise (`ny × ny`).
     pub data_sensitivity: Mat<f64>,
     pub phi: Mat<f64>,
+}
+
+/// `K(θ)` for the φ substeps of one θ.
+enum ThetaMatrices {
+    Dense(Mat<f64>),
+    /// Values on the model's union pattern.
+    Sparse(Vec<f64>),
+}
+
+/// The factorization of one mode's φ substep.
+enum ModeFactor {
+    Dense(PhiFactor),
+    Sparse(AugmentedFactor),
+}
+
+impl ModeFactor {
+    /// The per-mode block of the reduced Hessian (before the factor 2) and
+    /// `Z = N⁻¹(CᵀJ_y + E)`, from `J_y` (`(n + n_o) × (1 + p)`) and `E` (`n × (1 + p)`); see
+    /// [`BayesProblem::reduced`].
+    fn schur_block(&self, mut jy: Mat<f64>, e: Mat<f64>) -> (Mat<f64>, Mat<f64>) {
+        match self {
+            ModeFactor::Dense(fact) => {
+                let n = e.nrows();
+                fact.apply_qt(jy.as_mut());
+                let x1 = jy.subrows(0, n);
+                let x2 = jy.subrows(n, jy.nrows() - n);
+                let mut y = e;
+                fact.r()
+                    .transpose()
+                    .solve_lower_triangular_in_place(y.as_mut());
+                let block = x2.transpose() * x2
+                    - x1.transpose() * &y
+                    - y.transpose() * x1
+                    - y.transpose() * &y;
+                let mut z = x1 + &y;
+                fact.r().solve_upper_triangular_in_place(z.as_mut()); // R⁻¹(X₁ + Y)
+                (block, z)
+            }
+            ModeFactor::Sparse(fact) => {
+                // s = P⊥J_y − C N⁻¹E, u = N⁻¹(CᵀJ_y + E): J_yᵀs − Eᵀu is the block.
+                let minus_e = &e * faer::Scale(-1.0);
+                let (s, u) = fact.solve(jy.as_ref(), Some(minus_e.as_ref()));
+                let b = jy.transpose() * &s - e.transpose() * &u;
+                let block = (&b + b.transpose()) * faer::Scale(0.5);
+                (block, u)
+            }
+        }
+    }
 }
 
 /// `A x` for a sparse `A`, into a new vector.
@@ -241,13 +304,26 @@ impl BayesProblem {
         Ok(Self {
             n,
             p,
-            m_dense: model.mass_dense(),
+            m_dense: (n < SPARSE_FROM_DOF).then(|| model.mass_dense()),
+            augmented: AugmentedSymbolic::new(data.modes.len()),
             model: model.clone(),
             modes,
             inv_s2: 1.0 / (settings.sigma_c * settings.sigma_c),
             prior_mean: settings.prior_mean.clone(),
             prior_w: settings.prior_std.iter().map(|s| 1.0 / (s * s)).collect(),
         })
+    }
+
+    /// Uses the sparse φ substeps ([`augmented`]) whatever the model's size (they are
+    /// chosen automatically from [`SPARSE_FROM_DOF`] DOFs): for comparing the two paths on
+    /// a small model. The TSVD covariance needs the dense path.
+    pub fn force_sparse(&mut self) {
+        self.m_dense = None;
+    }
+
+    /// Whether the φ substeps are sparse.
+    pub fn is_sparse(&self) -> bool {
+        self.m_dense.is_none()
     }
 
     pub fn n_modes(&self) -> usize {
@@ -427,50 +503,95 @@ impl BayesProblem {
         k
     }
 
-    /// The optimal φ for fixed `(λ, θ)`, substep (21), and the factorizations. `φ_m`
-    /// minimizes `‖C_m φ − [0; W^{1/2} ψ̂]‖²`, solved by Householder QR of `C_m` rather than
-    /// through `N_m = C_mᵀC_m`, whose condition number (~1e14 for σ_c = 10 on the
-    /// cantilever) is the square of `C_m`'s.
-    fn phi_star(
-        &self,
-        lambda: &[f64],
-        theta: &[f64],
-    ) -> Result<(Mat<f64>, Vec<PhiFactor>), BayesError> {
-        let n = self.n;
-        let k = self.stiffness(theta);
-        let sigma_inv = self.inv_s2.sqrt();
-        let mut phi = Mat::zeros(n, self.modes.len());
-        let mut facts = Vec::with_capacity(self.modes.len());
-        for (m, mode) in self.modes.iter().enumerate() {
-            let no = mode.rows.len();
-            let mut c = Mat::zeros(n + no, n);
-            let mut d = Mat::<f64>::zeros(n + no, 1);
-            c.submatrix_mut(0, 0, n, n)
-                .copy_from((&k - &self.m_dense * faer::Scale(lambda[m])) * faer::Scale(sigma_inv));
-            for (i, row) in mode.rows.iter().enumerate() {
-                let sw = row.w.sqrt();
-                for &(j, cj) in &row.dofs {
-                    c[(n + i, j)] += sw * cj;
-                }
-                d[(n + i, 0)] = sw * row.psi;
-            }
-            let fact = PhiFactor { qr: c.qr() };
-            let r = fact.r();
-            if (0..n).any(|i| !(r[(i, i)].abs() > 0.0 && r[(i, i)].is_finite())) {
-                return Err(BayesError::PhiSystemSingular { mode: m + 1 });
-            }
-            fact.apply_qt(d.as_mut());
-            let mut x = d.subrows(0, n).to_owned();
-            r.solve_upper_triangular_in_place(x.as_mut());
-            phi.col_mut(m).copy_from(x.col(0));
-            facts.push(fact);
+    /// `K(θ)` for the φ substeps at one θ: dense, or its values on the union pattern.
+    fn theta_matrices(&self, theta: &[f64]) -> ThetaMatrices {
+        if self.m_dense.is_some() {
+            ThetaMatrices::Dense(self.stiffness(theta))
+        } else {
+            let mut v = vec![0.0; self.model.union_pattern().pattern.val().len()];
+            self.model.shifted_stiffness_values(theta, 0.0, &mut v);
+            ThetaMatrices::Sparse(v)
         }
-        Ok((phi, facts))
+    }
+
+    /// The optimal `φ_m` for fixed `(λ_m, θ)`, substep (21), and its factorization. `φ_m`
+    /// minimizes `‖C_m φ − [0; W^{1/2} ψ̂]‖²`, solved by Householder QR of `C_m` (dense) or
+    /// through the augmented system (sparse), rather than through `N_m = C_mᵀC_m`, whose
+    /// condition number (~1e14 for σ_c = 10 on the cantilever) is the square of `C_m`'s.
+    fn mode_factor(
+        &self,
+        k: &ThetaMatrices,
+        m: usize,
+        lambda: f64,
+    ) -> Result<(Vec<f64>, ModeFactor), BayesError> {
+        let n = self.n;
+        let mode = &self.modes[m];
+        let no = mode.rows.len();
+        let sigma_inv = self.inv_s2.sqrt();
+        let mut d = Mat::<f64>::zeros(n + no, 1);
+        for (i, row) in mode.rows.iter().enumerate() {
+            d[(n + i, 0)] = row.w.sqrt() * row.psi;
+        }
+        match k {
+            ThetaMatrices::Dense(k) => {
+                let m_dense = self.m_dense.as_ref().expect("dense K goes with dense M");
+                let mut c = Mat::zeros(n + no, n);
+                c.submatrix_mut(0, 0, n, n)
+                    .copy_from((k - m_dense * faer::Scale(lambda)) * faer::Scale(sigma_inv));
+                for (i, row) in mode.rows.iter().enumerate() {
+                    let sw = row.w.sqrt();
+                    for &(j, cj) in &row.dofs {
+                        c[(n + i, j)] += sw * cj;
+                    }
+                }
+                let fact = PhiFactor { qr: c.qr() };
+                let r = fact.r();
+                if (0..n).any(|i| !(r[(i, i)].abs() > 0.0 && r[(i, i)].is_finite())) {
+                    return Err(BayesError::PhiSystemSingular { mode: m + 1 });
+                }
+                fact.apply_qt(d.as_mut());
+                let mut x = d.subrows(0, n).to_owned();
+                r.solve_upper_triangular_in_place(x.as_mut());
+                Ok((x.col(0).iter().copied().collect(), ModeFactor::Dense(fact)))
+            }
+            ThetaMatrices::Sparse(kv) => {
+                let mut a = kv.clone();
+                self.model.subtract_mass_values(lambda, &mut a);
+                let fact = AugmentedFactor::new(
+                    &self.model,
+                    &self.augmented,
+                    m,
+                    &a,
+                    sigma_inv,
+                    &mode.rows,
+                )?;
+                let (_, u) = fact.solve(d.as_ref(), None);
+                let phi: Vec<f64> = u.col(0).iter().copied().collect();
+                if !phi.iter().all(|v| v.is_finite()) {
+                    return Err(BayesError::PhiSystemSingular { mode: m + 1 });
+                }
+                Ok((phi, ModeFactor::Sparse(fact)))
+            }
+        }
+    }
+
+    /// The optimal φ for fixed `(λ, θ)`, substep (21), every mode.
+    fn phi_star(&self, lambda: &[f64], theta: &[f64]) -> Result<Mat<f64>, BayesError> {
+        let k = self.theta_matrices(theta);
+        let mut phi = Mat::zeros(self.n, self.modes.len());
+        for m in 0..self.modes.len() {
+            let (ph, _) = self.mode_factor(&k, m, lambda[m])?;
+            phi.col_mut(m)
+                .iter_mut()
+                .zip(&ph)
+                .for_each(|(a, b)| *a = *b);
+        }
+        Ok(phi)
     }
 
     /// The optimal φ at `(λ, θ)` (substep (21)).
     pub fn optimal_phi(&self, lambda: &[f64], theta: &[f64]) -> Result<Mat<f64>, BayesError> {
-        Ok(self.phi_star(lambda, theta)?.0)
+        self.phi_star(lambda, theta)
     }
 
     /// Reduced objective `F(λ, θ)` with its exact gradient and Hessian, the Schur complement
@@ -480,7 +601,9 @@ impl BayesProblem {
     /// [σ_c⁻¹(−Mφ | K_lφ); 0]`, `C = QR` and `E = [−σ_c⁻² M A φ | σ_c⁻² K_l A φ]` (the
     /// second-order coupling `Σ r_i ∂²r_i/∂φ∂y`): `J_φφ = 2CᵀC`, `J_φy = 2(CᵀJ_y + E)`,
     /// `J_yy = 2J_yᵀJ_y` (+ `2w_λ` and the prior), and with `X₁ = Q₁ᵀJ_y`, `X₂ = Q₂ᵀJ_y`,
-    /// `Y = R⁻ᵀE` the Schur complement is `2[X₂ᵀX₂ − X₁ᵀY − YᵀX₁ − YᵀY]`.
+    /// `Y = R⁻ᵀE` the Schur complement is `2[X₂ᵀX₂ − X₁ᵀY − YᵀX₁ − YᵀY]`. That is
+    /// `2[J_yᵀP⊥J_y − J_yᵀCN⁻¹E − EᵀN⁻¹CᵀJ_y − EᵀN⁻¹E]`, which the sparse path evaluates as
+    /// `2[J_yᵀs − Eᵀu]` from the augmented system's `s` and `u` ([`augmented`]).
     ///
     /// The data sensitivity: `∂F/∂y = ∂J_p/∂y` at `φ*` (envelope theorem) and
     /// `∂φ*/∂ψ̂ = N⁻¹L_oᵀW`, so `∂²F/∂y∂ψ̂ = J_yφ N⁻¹ L_oᵀ W = 2 (X₁ + Y)ᵀ R⁻ᵀ L_oᵀ W`;
@@ -488,7 +611,8 @@ impl BayesProblem {
     /// eigenvalues `∂²F/∂λ_m∂λ̂_m = −2 w_λm`, weighted by `σ_λ = w_λ^{-1/2}`.
     pub fn reduced(&self, lambda: &[f64], theta: &[f64]) -> Result<Reduced, BayesError> {
         let (n, nm, p) = (self.n, self.modes.len(), self.p);
-        let (phi, facts) = self.phi_star(lambda, theta)?;
+        let kt = self.theta_matrices(theta);
+        let mut phi = Mat::zeros(n, nm);
         // J_p (14) at (λ, φ*, θ), accumulated below from the per-mode products.
         let mut value = self.prior_term(theta);
         let ny = nm + p;
@@ -500,7 +624,11 @@ impl BayesProblem {
         let sig = s2.sqrt();
         let idx = |m: usize, j: usize| if j == 0 { m } else { nm + j - 1 };
         for (m, mode) in self.modes.iter().enumerate() {
-            let ph: Vec<f64> = phi.col(m).iter().copied().collect();
+            let (ph, fact) = self.mode_factor(&kt, m, lambda[m])?;
+            phi.col_mut(m)
+                .iter_mut()
+                .zip(&ph)
+                .for_each(|(a, b)| *a = *b);
             let pr = self.products(lambda[m], &ph, theta);
             let dl = mode.lambda_hat - lambda[m];
             value += mode.w_lambda * dl * dl + self.shape_misfit(m, &ph) + s2 * dot_self(&pr.aphi);
@@ -510,7 +638,6 @@ impl BayesProblem {
                 g[nm + l] += 2.0 * s2 * dot(&pr.klphi[l], &pr.aphi);
             }
             // Hessian of F per mode (see above). The λ_m–λ_m entry also gets 2 w_λm.
-            let fact = &facts[m];
             let rows = n + mode.rows.len();
             let mut jy = Mat::zeros(rows, 1 + p);
             let mut e = Mat::zeros(n, 1 + p);
@@ -526,15 +653,7 @@ impl BayesProblem {
                     e[(i, 1 + l)] = s2 * klaphi[i];
                 }
             }
-            fact.apply_qt(jy.as_mut());
-            let x1 = jy.subrows(0, n);
-            let x2 = jy.subrows(n, rows - n);
-            let mut y = e;
-            fact.r()
-                .transpose()
-                .solve_lower_triangular_in_place(y.as_mut());
-            let block =
-                x2.transpose() * x2 - x1.transpose() * &y - y.transpose() * x1 - y.transpose() * &y;
+            let (block, z) = fact.schur_block(jy, e);
             for i in 0..=p {
                 for j in 0..=p {
                     h[(idx(m, i), idx(m, j))] += 2.0 * block[(i, j)];
@@ -543,8 +662,6 @@ impl BayesProblem {
             h[(m, m)] += 2.0 * mode.w_lambda;
             // Data sensitivity: λ̂_m, then ψ̂_m's entries: 2 (X₁+Y)ᵀ R⁻ᵀ L_oᵀ W^{1/2}.
             sens[(m, col0)] = -2.0 * mode.w_lambda.sqrt();
-            let mut z = x1 + &y;
-            fact.r().solve_upper_triangular_in_place(z.as_mut()); // R⁻¹(X₁ + Y)
             for (i, row) in mode.rows.iter().enumerate() {
                 let sw = row.w.sqrt();
                 for j in 0..=p {
@@ -930,7 +1047,7 @@ impl BayesProblem {
         while iterations < max_iterations {
             iterations += 1;
             // (21) φ for (λ_k, θ_k).
-            phi = self.phi_star(&lambda, &theta)?.0;
+            phi = self.phi_star(&lambda, &theta)?;
             let mut lhs = Mat::<f64>::zeros(p, p);
             let mut rhs = Col::<f64>::zeros(p);
             for (m, mode) in self.modes.iter().enumerate() {

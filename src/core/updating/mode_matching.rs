@@ -141,14 +141,34 @@ impl ModeMatchingResult {
     }
 }
 
+/// Called after every accepted iterate (and once at the start, iteration 0) with the
+/// iteration count and the iterate: a progress display for long updates (the large model's
+/// iterations take seconds).
+pub type ProgressFn = Box<dyn FnMut(usize, &IterationRecord) + Send>;
+
 /// The mode-matching solver for one model; reuses its evaluator across updates.
 pub struct ModeMatching {
     pub evaluator: Evaluator,
+    progress: Option<ProgressFn>,
 }
 
 impl ModeMatching {
     pub fn new(evaluator: Evaluator) -> Self {
-        Self { evaluator }
+        Self {
+            evaluator,
+            progress: None,
+        }
+    }
+
+    /// Reports every accepted iterate to `f` (see [`ProgressFn`]).
+    pub fn set_progress(&mut self, f: ProgressFn) {
+        self.progress = Some(f);
+    }
+
+    fn report(&mut self, iteration: usize, rec: &IterationRecord) {
+        if let Some(f) = &mut self.progress {
+            f(iteration, rec);
+        }
     }
 
     /// Minimizes ε from `theta0`.
@@ -180,6 +200,7 @@ impl ModeMatching {
         let mut ev = self.evaluator.evaluate(model, data, theta0)?;
         let mut evaluations = 1;
         let mut history = vec![record(&ev)];
+        self.report(0, &history[0]);
         let mut iterations = 0;
         let mut mu = 1e-3;
         let mut nu = 2.0;
@@ -214,6 +235,7 @@ impl ModeMatching {
                     evaluations += 1;
                     iterations += 1;
                     history.push(record(&ev));
+                    self.report(iterations, history.last().expect("just pushed"));
                     if done {
                         break Termination::Converged;
                     }
@@ -256,6 +278,7 @@ impl ModeMatching {
                             ev = trial;
                             iterations += 1;
                             history.push(record(&ev));
+                    self.report(iterations, history.last().expect("just pushed"));
                         }
                         break Termination::Converged;
                     }
@@ -309,6 +332,7 @@ impl ModeMatching {
                     }
                     iterations += 1;
                     history.push(record(&ev));
+                    self.report(iterations, history.last().expect("just pushed"));
                 }
             }
         };

@@ -132,7 +132,7 @@ impl BayesProblem {
     }
 
     /// The paper's Hessian (16), `H = ½∇²J_p` over `(λ, φ (column-major), θ)`, dense.
-    pub fn full_hessian(&self, s: &BayesState) -> Mat<f64> {
+    fn full_hessian(&self, s: &BayesState) -> Mat<f64> {
         let (n, nm, p) = (self.n, self.n_modes(), self.p);
         let dim = nm + n * nm + p;
         let mut h = Mat::zeros(dim, dim);
@@ -142,7 +142,7 @@ impl BayesProblem {
         for (m, mode) in self.modes.iter().enumerate() {
             let ph: Vec<f64> = s.phi.col(m).iter().copied().collect();
             let pr = self.products(s.lambda[m], &ph, &s.theta);
-            let a = &k - &self.m_dense * faer::Scale(s.lambda[m]);
+            let a = &k - self.m_dense.as_ref().expect("checked by the caller") * faer::Scale(s.lambda[m]);
             let f = nm + m * n;
             // λλ: σ⁻² φᵀM²φ + w_λ (G_λ).
             h[(m, m)] = s2 * dot(&pr.mphi, &pr.mphi) + mode.w_lambda;
@@ -200,6 +200,13 @@ impl BayesProblem {
     /// paper does, from `HΣ̃ = Σ_kept (H v_i / e_i) v_iᵀ`; in exact arithmetic it would be
     /// `√(N − kept)`, and its departure from that shows the ill-conditioning.
     pub fn tsvd_covariance(&self, s: &BayesState) -> Result<Tsvd, BayesError> {
+        if self.m_dense.is_none() {
+            return Err(BayesError::TooLarge {
+                what: "the Hessian (16) for the TSVD covariance",
+                n_dof: self.n,
+                limit: crate::core::modal::SPARSE_FROM_DOF,
+            });
+        }
         let h = self.full_hessian(s);
         let dim = h.nrows();
         let evd = h
