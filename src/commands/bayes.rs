@@ -333,10 +333,17 @@ pub fn run_update(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
             prior_std: std.clone(),
         },
     )?;
-    let pb = spinner(format!(
+    let pb = super::update::iteration_progress(&format!(
         "MAP by the {:?} solver at σ_c = {sigma_c:.4e}",
         b.solver
     ));
+    let bar = pb.clone();
+    prob.set_progress(Box::new(move |s, k, value, theta| {
+        bar.set_message(format!(
+            "stage σ_c = {s:.3e}, iteration {k}: objective {value:.6e}, θ = {}",
+            super::update::fmt_theta(theta)
+        ));
+    }));
     let started = Instant::now();
     let res = prob.solve(solver(b.solver), &theta0, max_iter)?;
     let seconds = started.elapsed().as_secs_f64();

@@ -88,6 +88,7 @@ pub fn run(args: &PublishArgs) -> Result<()> {
             let p = session
                 .declare_publisher(t.clone())
                 .congestion_control(zenoh::qos::CongestionControl::Block)
+                .priority(zenoh::qos::Priority::Data)
                 .await
                 .map_err(zerr(format!("cannot declare a publisher on {t}")))?;
             if args.wait > 0.0 {
@@ -128,10 +129,27 @@ pub fn run(args: &PublishArgs) -> Result<()> {
                 .map_err(zerr(format!("cannot publish on {}", m.topic)))?;
         }
         let secs = start.elapsed().as_secs_f64();
-        // Let the last messages leave before the session closes (closing does not wait for
-        // the transport's queues). 200 ms was too short through a TLS router on a loaded
-        // machine: a CI run saw 4 of 20 sets arrive.
-        tokio::time::sleep(Duration::from_millis(1000)).await;
+        // Closing the session discards what its transport has not sent yet (a CI run
+        // through a TLS router on a loaded machine saw 4 of 20 sets arrive after a 200 ms
+        // pause, 1 s later). So wait for delivery: a query to each structure's status,
+        // behind the sets on the same links and at the same priority (Data, FIFO per link
+        // and per router hop), is answered by the daemon only after it has received them.
+        let mut unconfirmed = Vec::new();
+        for t in &topics {
+            let status = t.trim_end_matches("/modal").to_string() + "/status";
+            if !delivered(&session, &status, args.wait.max(1.0)).await {
+                unconfirmed.push(status);
+            }
+        }
+        if !unconfirmed.is_empty() {
+            // No daemon answers for these (another kind of subscriber): give the transport
+            // time to drain instead.
+            eprintln!(
+                "warning: delivery not confirmed (no answer on {}); waiting 2 s before closing",
+                unconfirmed.join(", ")
+            );
+            tokio::time::sleep(Duration::from_secs(2)).await;
+        }
         session.close().await.map_err(zerr("cannot close the Zenoh session"))?;
         println!(
             "published {} modal sets of {} on {} ({secs:.1} s, {:.0} sets/s)",
@@ -142,4 +160,24 @@ pub fn run(args: &PublishArgs) -> Result<()> {
         );
         Ok(())
     })
+}
+
+/// Whether a status query on `key`, sent after the sets, is answered within `timeout_s`
+/// seconds (see the delivery barrier in [`run`]).
+async fn delivered(session: &zenoh::Session, key: &str, timeout_s: f64) -> bool {
+    let Ok(replies) = session
+        .get(key)
+        .priority(zenoh::qos::Priority::Data)
+        .congestion_control(zenoh::qos::CongestionControl::Block)
+        .timeout(Duration::from_secs_f64(timeout_s))
+        .await
+    else {
+        return false;
+    };
+    while let Ok(r) = replies.recv_async().await {
+        if r.result().is_ok() {
+            return true;
+        }
+    }
+    false
 }

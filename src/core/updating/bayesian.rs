@@ -42,8 +42,8 @@ pub use sweep::{
 use super::data::MeasuredData;
 use crate::core::modal::SPARSE_FROM_DOF;
 use crate::core::model::Model;
-use augmented::{AugmentedFactor, AugmentedSymbolic};
 use crate::core::model::sparse::{Csc, spmv_add};
+use augmented::{AugmentedFactor, AugmentedSymbolic};
 
 /// Failures of the Bayesian solver.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -139,8 +139,15 @@ impl PhiFactor {
     }
 }
 
+/// Called after every iteration of a solver with the σ_c being solved for, the iteration
+/// (counted within a continuation stage), the objective (`F` for Newton, `J_p` for the
+/// alternating substeps) and θ: a progress display for the large model, whose iterations
+/// take seconds.
+pub type BayesProgress = Box<dyn FnMut(f64, usize, f64, &[f64]) + Send>;
+
 /// The Bayesian MAP problem for one model and one modal set.
 pub struct BayesProblem {
+    progress: std::sync::Mutex<Option<BayesProgress>>,
     n: usize,
     p: usize,
     model: Model,
@@ -306,6 +313,7 @@ impl BayesProblem {
             p,
             m_dense: (n < SPARSE_FROM_DOF).then(|| model.mass_dense()),
             augmented: AugmentedSymbolic::new(data.modes.len()),
+            progress: std::sync::Mutex::new(None),
             model: model.clone(),
             modes,
             inv_s2: 1.0 / (settings.sigma_c * settings.sigma_c),
@@ -319,6 +327,19 @@ impl BayesProblem {
     /// a small model. The TSVD covariance needs the dense path.
     pub fn force_sparse(&mut self) {
         self.m_dense = None;
+    }
+
+    /// Reports every iteration to `f` (see [`BayesProgress`]).
+    pub fn set_progress(&mut self, f: BayesProgress) {
+        self.progress = std::sync::Mutex::new(Some(f));
+    }
+
+    fn report(&self, iteration: usize, value: f64, theta: &[f64]) {
+        if let Ok(mut g) = self.progress.lock()
+            && let Some(f) = g.as_mut()
+        {
+            f(self.sigma_c(), iteration, value, theta);
+        }
     }
 
     /// Whether the φ substeps are sparse.
@@ -1007,6 +1028,7 @@ impl BayesProblem {
                 }
             }
             iterations += 1;
+            self.report(iterations, cur.value, &y[nm..]);
             if !accepted {
                 // No descent possible at machine precision: at the minimum if the Hessian
                 // is positive definite there, otherwise stuck (a saddle or a boundary).
@@ -1085,6 +1107,14 @@ impl BayesProblem {
                 .fold(0.0, f64::max);
             for (l, t) in theta.iter_mut().enumerate() {
                 *t = new[(l, 0)];
+            }
+            if self.progress.lock().is_ok_and(|g| g.is_some()) {
+                let state = BayesState {
+                    lambda: lambda.clone(),
+                    phi: phi.clone(),
+                    theta: theta.clone(),
+                };
+                self.report(iterations, self.objective(&state).total, &theta);
             }
             if step < ALTERNATING_TOL {
                 converged = true;

@@ -278,7 +278,7 @@ impl ModeMatching {
                             ev = trial;
                             iterations += 1;
                             history.push(record(&ev));
-                    self.report(iterations, history.last().expect("just pushed"));
+                            self.report(iterations, history.last().expect("just pushed"));
                         }
                         break Termination::Converged;
                     }

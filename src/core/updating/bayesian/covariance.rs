@@ -142,7 +142,8 @@ impl BayesProblem {
         for (m, mode) in self.modes.iter().enumerate() {
             let ph: Vec<f64> = s.phi.col(m).iter().copied().collect();
             let pr = self.products(s.lambda[m], &ph, &s.theta);
-            let a = &k - self.m_dense.as_ref().expect("checked by the caller") * faer::Scale(s.lambda[m]);
+            let a = &k
+                - self.m_dense.as_ref().expect("checked by the caller") * faer::Scale(s.lambda[m]);
             let f = nm + m * n;
             // λλ: σ⁻² φᵀM²φ + w_λ (G_λ).
             h[(m, m)] = s2 * dot(&pr.mphi, &pr.mphi) + mode.w_lambda;
