@@ -9,8 +9,8 @@ use super::{load_model, parse_theta, write_json};
 use crate::contract::modal_set::{ModalSet, ValidationContext, parse_modal_set};
 use crate::core::model::Model;
 use crate::core::updating::{
-    Evaluator, FinalStep, MeasuredData, ModeMatching, ModeMatchingOptions, StartPath, StepControl,
-    Weighting, chi2_bound,
+    AtBound, Evaluator, FinalStep, MeasuredData, ModeMatching, ModeMatchingOptions, StartPath,
+    StepControl, Weighting, chi2_bound,
 };
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -41,6 +41,17 @@ pub struct UpdateArgs {
     /// Stop when every |Δθ_i|/θ_i is below this.
     #[arg(long, default_value_t = 1e-5)]
     pub tol: f64,
+    /// Mode matching: also stop when the Gauss–Newton step's predicted decrease of ε is
+    /// below this (ε is a χ² quantity: a decrease of 1e-3 changes the likelihood by a
+    /// factor 1.0005), so a parameter the data cannot pin down (a flat valley of ε) does
+    /// not creep on for dozens of iterations.
+    #[arg(long)]
+    pub eps_tol: Option<f64>,
+    /// Mode matching: keep every θ_i within `lo,hi` times its nominal value, or `none`. A
+    /// parameter the data cannot pin down then stops at a bound (reported as such: the
+    /// data only say it is beyond it) instead of running off while the fit stalls.
+    #[arg(long, default_value = "1e-3,1e3")]
+    pub bounds: String,
     /// Maximum iterations (default: 200; 10⁶ for `--solver alternating`).
     #[arg(long)]
     pub max_iter: Option<usize>,
@@ -129,7 +140,8 @@ fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
         max_iterations: args.max_iter.unwrap_or(200),
         final_step: FinalStep::Evaluate,
         sigma_tol: None,
-        eps_tol: None,
+        eps_tol: args.eps_tol,
+        bounds: parse_bounds(&args.bounds)?,
     };
     let mut mm = ModeMatching::new(Evaluator::new(model)?);
     let pb = iteration_progress("mode matching");
@@ -186,6 +198,11 @@ fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
         "parameters": model.parameters().iter().enumerate().map(|(l, p)| json!({
             "name": p.name, "theta": res.theta[l],
             "std": if std[l].is_nan() { serde_json::Value::Null } else { json!(std[l]) },
+            "at_bound": match res.at_bound[l] {
+                Some(AtBound::Upper) => json!("upper"),
+                Some(AtBound::Lower) => json!("lower"),
+                None => serde_json::Value::Null,
+            },
         })).collect::<Vec<_>>(),
         "modes": modes,
     });
@@ -208,6 +225,24 @@ pub fn iteration_progress(what: &str) -> indicatif::ProgressBar {
     pb
 }
 
+/// `--bounds`: `lo,hi` or `none`.
+fn parse_bounds(s: &str) -> Result<Option<(f64, f64)>> {
+    if s.trim() == "none" {
+        return Ok(None);
+    }
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|x| x.trim().parse::<f64>())
+        .collect::<std::result::Result<_, _>>()
+        .with_context(|| {
+            format!("--bounds `{s}`: need `lo,hi` (factors of the nominal θ) or `none`")
+        })?;
+    match v[..] {
+        [lo, hi] if lo > 0.0 && lo < 1.0 && hi > 1.0 && hi.is_finite() => Ok(Some((lo, hi))),
+        _ => anyhow::bail!("--bounds `{s}`: need two factors 0 < lo < 1 < hi, or `none`"),
+    }
+}
+
 /// θ as `(0.3600, 1.0000, …)`.
 pub fn fmt_theta(theta: &[f64]) -> String {
     let v: Vec<String> = theta.iter().map(|t| format!("{t:.4}")).collect();
@@ -222,7 +257,15 @@ fn print_table(
 ) {
     println!("{:<12} {:>12} {:>12}", "parameter", "θ", "σ");
     for (l, p) in model.parameters().iter().enumerate() {
-        println!("{:<12} {:>12.5} {:>12.5}", p.name, res.theta[l], std[l]);
+        let note = match res.at_bound[l] {
+            Some(AtBound::Upper) => "  at its upper bound: the data say only that it is stiffer",
+            Some(AtBound::Lower) => "  at its lower bound: the data say only that it is softer",
+            None => "",
+        };
+        println!(
+            "{:<12} {:>12.5} {:>12.5}{note}",
+            p.name, res.theta[l], std[l]
+        );
     }
     println!();
     println!(

@@ -397,28 +397,36 @@ print(json.dumps((np.sqrt(lam) / (2 * np.pi)).tolist()))
 
 /// The issue's updating case on the four-bay model: data simulated at
 /// θ = (0.36, 0.36, 0.36, 0.5), 6 modes at all 66 channels, 1 % eigenvalue CoV (0.5 %
-/// frequency CoV) and 5 % NSD, with noise; mode matching from θ0 = 1 converges in at most
-/// 20 iterations to within 3σ (15) of the truth in every parameter.
+/// frequency CoV) and 5 % NSD, with noise (seed 7); mode matching from θ0 = 1 converges in
+/// at most 20 iterations to within 3σ (15) of the truth in every parameter. θ4 (every
+/// out-of-plane spring) is practically unidentifiable from these modes (σ(θ4) = 0.43 at
+/// the truth from noise-free data): for this noise draw ε keeps falling, by less than
+/// 1e-3 per iteration, as θ4 → ∞, and unbounded the fit runs off and stalls. With the
+/// `update` command's bounds (1e-3…1e3 × nominal) it stops at θ4 = 1000, reported at its
+/// upper bound, σ(θ4) ≈ 1.7e6, while θ1–θ3 converge (measured: 9 iterations, θ1–θ3 within
+/// 0.7σ).
 #[test]
-#[ignore = "open (issue 7): θ4 is practically unidentifiable from these six modes, the fit drifts it to 1e8 and stalls"]
 fn mode_matching_recovers_the_four_bay_truth() {
-    use boltwatch::core::updating::{Evaluator, ModeMatching, ModeMatchingOptions};
+    use boltwatch::core::updating::{AtBound, Evaluator, ModeMatching, ModeMatchingOptions};
     let model = four_bay();
     let truth = [0.36, 0.36, 0.36, 0.5];
     let data = super::common::simulated_data(&model, &truth, 6, 0.005, 0.05, true, 7);
     let mut mm = ModeMatching::new(Evaluator::new(&model).unwrap());
-    let res = mm
-        .run(&model, &data, &[1.0; 4], &ModeMatchingOptions::default())
-        .unwrap();
+    let opts = ModeMatchingOptions {
+        bounds: Some((1e-3, 1e3)),
+        ..Default::default()
+    };
+    let res = mm.run(&model, &data, &[1.0; 4], &opts).unwrap();
     let std = res.std();
     for (l, p) in model.parameters().iter().enumerate() {
         println!(
-            "{:<12} {:.4} ± {:.4} (truth {}, {:+.2}σ)",
+            "{:<12} {:.4} ± {:.4} (truth {}, {:+.2}σ) {:?}",
             p.name,
             res.theta[l],
             std[l],
             truth[l],
-            (res.theta[l] - truth[l]) / std[l]
+            (res.theta[l] - truth[l]) / std[l],
+            res.at_bound[l]
         );
     }
     println!(
@@ -433,6 +441,8 @@ fn mode_matching_recovers_the_four_bay_truth() {
         "{:?}",
         res.termination
     );
+    assert!(res.at_bound[..3].iter().all(Option::is_none));
+    assert_ne!(res.at_bound[3], Some(AtBound::Lower));
     for l in 0..4 {
         assert!(
             (res.theta[l] - truth[l]).abs() < 3.0 * std[l],

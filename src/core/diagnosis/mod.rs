@@ -183,6 +183,7 @@ fn mm_options() -> ModeMatchingOptions {
         // of a candidate that cannot explain the data creep along a flat valley of ε for
         // 20–50 iterations and stall.
         eps_tol: Some(1e-3),
+        bounds: None,
     }
 }
 

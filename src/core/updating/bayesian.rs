@@ -195,7 +195,7 @@ enum ThetaMatrices {
 /// The factorization of one mode's φ substep.
 enum ModeFactor {
     Dense(PhiFactor),
-    Sparse(AugmentedFactor),
+    Sparse(Box<AugmentedFactor>),
 }
 
 impl ModeFactor {
@@ -591,7 +591,7 @@ impl BayesProblem {
                 if !phi.iter().all(|v| v.is_finite()) {
                     return Err(BayesError::PhiSystemSingular { mode: m + 1 });
                 }
-                Ok((phi, ModeFactor::Sparse(fact)))
+                Ok((phi, ModeFactor::Sparse(Box::new(fact))))
             }
         }
     }
@@ -600,8 +600,8 @@ impl BayesProblem {
     fn phi_star(&self, lambda: &[f64], theta: &[f64]) -> Result<Mat<f64>, BayesError> {
         let k = self.theta_matrices(theta);
         let mut phi = Mat::zeros(self.n, self.modes.len());
-        for m in 0..self.modes.len() {
-            let (ph, _) = self.mode_factor(&k, m, lambda[m])?;
+        for (m, &lm) in lambda.iter().enumerate().take(self.modes.len()) {
+            let (ph, _) = self.mode_factor(&k, m, lm)?;
             phi.col_mut(m)
                 .iter_mut()
                 .zip(&ph)

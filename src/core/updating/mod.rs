@@ -8,8 +8,8 @@ pub mod residual;
 
 pub use data::{MeasuredData, RawMode, TargetMode, TargetShape, Weighting};
 pub use mode_matching::{
-    FinalStep, ModeMatching, ModeMatchingOptions, ModeMatchingResult, StartPath, StepControl,
-    Termination, chi2_bound, chi2_bound_of_dof, chi2_dof,
+    AtBound, FinalStep, ModeMatching, ModeMatchingOptions, ModeMatchingResult, StartPath,
+    StepControl, Termination, chi2_bound, chi2_bound_of_dof, chi2_dof,
 };
 pub use residual::{Evaluation, Evaluator};
 

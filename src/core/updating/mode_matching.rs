@@ -52,6 +52,12 @@ pub struct ModeMatchingOptions {
     /// that accuracy, which is all a profile of ε needs, while θ may still creep along a
     /// flat valley for dozens of iterations.
     pub eps_tol: Option<f64>,
+    /// Levenberg–Marquardt: keep every θ_i within `[lo, hi] ×` its nominal value. A
+    /// parameter the data cannot pin down (a connection already far stiffer than what the
+    /// measured modes load) otherwise runs off towards 0 or ∞ while ε barely changes, and
+    /// the fit stalls there; bounded, it stops at the bound and the others converge
+    /// ([`ModeMatchingResult::at_bound`] names it). `None`: unbounded (θ > 0 only).
+    pub bounds: Option<(f64, f64)>,
 }
 
 impl Default for ModeMatchingOptions {
@@ -63,8 +69,16 @@ impl Default for ModeMatchingOptions {
             final_step: FinalStep::Evaluate,
             sigma_tol: None,
             eps_tol: None,
+            bounds: None,
         }
     }
+}
+
+/// Which bound a parameter ended at ([`ModeMatchingOptions::bounds`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AtBound {
+    Lower,
+    Upper,
 }
 
 /// The last (converged) Levenberg–Marquardt step.
@@ -120,6 +134,9 @@ pub struct ModeMatchingResult {
     pub last: Evaluation,
     /// θ, ε and pairing at the start and after every accepted step.
     pub history: Vec<IterationRecord>,
+    /// Per parameter, the bound it ended at, if any: the data then only say that θ_i is
+    /// beyond it (a bound the fit pressed against, not an estimate).
+    pub at_bound: Vec<Option<AtBound>>,
 }
 
 impl ModeMatchingResult {
@@ -196,7 +213,40 @@ impl ModeMatching {
                 reason: "must be a finite number > 0",
             });
         }
+        for (name, v) in [("sigma_tol", opts.sigma_tol), ("eps_tol", opts.eps_tol)] {
+            if let Some(v) = v
+                && !(v.is_finite() && v > 0.0)
+            {
+                return Err(UpdateError::Option {
+                    name,
+                    value: v,
+                    reason: "must be a finite number > 0",
+                });
+            }
+        }
+        if let Some((lo, hi)) = opts.bounds
+            && !(lo.is_finite() && hi.is_finite() && lo > 0.0 && lo < 1.0 && hi > 1.0)
+        {
+            return Err(UpdateError::Option {
+                name: "bounds",
+                value: if lo > 0.0 && lo < 1.0 { hi } else { lo },
+                reason: "need finite factors 0 < lo < 1 < hi of the nominal θ",
+            });
+        }
         let p = model.n_params();
+        // Bounds of u = ln θ (±∞ if unbounded).
+        let (u_lo, u_hi): (Vec<f64>, Vec<f64>) = model
+            .parameters()
+            .iter()
+            .map(|par| match opts.bounds {
+                Some((lo, hi)) => ((lo * par.nominal).ln(), (hi * par.nominal).ln()),
+                None => (f64::NEG_INFINITY, f64::INFINITY),
+            })
+            .unzip();
+        let theta0: Vec<f64> = (0..p)
+            .map(|i| theta0[i].clamp(u_lo[i].exp(), u_hi[i].exp()))
+            .collect();
+        let theta0 = theta0.as_slice();
         let mut ev = self.evaluator.evaluate(model, data, theta0)?;
         let mut evaluations = 1;
         let mut history = vec![record(&ev)];
@@ -204,6 +254,9 @@ impl ModeMatching {
         let mut iterations = 0;
         let mut mu = 1e-3;
         let mut nu = 2.0;
+        // Set once releasing a parameter from its bound (descent pointing inwards) failed
+        // to lower ε: from then on every parameter at a bound is held there.
+        let mut hold_bounded = false;
         // The Jacobian of the last iteration, reused for (15) if θ did not move after it.
         let mut last_jac: Option<(Vec<f64>, Mat<f64>)> = None;
         // The Gauss–Newton point of FinalStep::Extrapolate.
@@ -248,13 +301,36 @@ impl ModeMatching {
                             ju[(i, l)] *= theta[l];
                         }
                     }
-                    let a = ju.transpose() * &ju;
-                    let g = ju.transpose() * faer::ColRef::from_slice(&ev.r);
+                    let mut a = ju.transpose() * &ju;
+                    let mut g = ju.transpose() * faer::ColRef::from_slice(&ev.r);
+                    // A parameter at a bound that descent would push beyond is held there
+                    // (and, after a failed release, any parameter at a bound): its row
+                    // and column of the normal matrix become the identity's and its
+                    // gradient zero, so every step leaves it.
+                    for i in 0..p {
+                        let u = theta[i].ln();
+                        let held = (u >= u_hi[i] - 1e-12 && (g[i] < 0.0 || hold_bounded))
+                            || (u <= u_lo[i] + 1e-12 && (g[i] > 0.0 || hold_bounded));
+                        if held {
+                            for j in 0..p {
+                                a[(i, j)] = 0.0;
+                                a[(j, i)] = 0.0;
+                            }
+                            a[(i, i)] = 1.0;
+                            g[i] = 0.0;
+                        }
+                    }
+                    // Steps are cut at the bounds.
+                    let clip = |i: usize, d: f64| {
+                        let u = theta[i].ln();
+                        (u + d).clamp(u_lo[i], u_hi[i]) - u
+                    };
                     // Convergence test on the undamped step (A factored once for the step
                     // and the standard deviations).
                     let normal = a.llt(Side::Lower).ok();
                     if let Some(llt) = &normal
                         && let Some(gn) = step_from(llt, &g)
+                        && let gn = (0..p).map(|i| clip(i, gn[i])).collect::<Vec<f64>>()
                         && (gn.iter().all(|d| d.exp_m1().abs() < opts.tol)
                             || opts
                                 .sigma_tol
@@ -300,6 +376,9 @@ impl ModeMatching {
                         if cap > MAX_LOG_STEP {
                             step *= faer::Scale(MAX_LOG_STEP / cap);
                         }
+                        for i in 0..p {
+                            step[i] = clip(i, step[i]);
+                        }
                         let new: Vec<f64> = (0..p).map(|i| theta[i] * step[i].exp()).collect();
                         // Predicted decrease ‖r‖² − ‖r + J δ‖² = −(2δᵀg + δᵀAδ).
                         let ad = &a * &step;
@@ -328,6 +407,19 @@ impl ModeMatching {
                         nu *= 2.0;
                     }
                     if !accepted {
+                        let bounded = (0..p).any(|i| {
+                            let u = theta[i].ln();
+                            u >= u_hi[i] - 1e-12 || u <= u_lo[i] + 1e-12
+                        });
+                        if bounded && !hold_bounded {
+                            // The linear model promised a decrease from moving a parameter
+                            // back from its bound (ε is flat there) that did not come:
+                            // hold it and go on with the others.
+                            hold_bounded = true;
+                            mu = 1e-3;
+                            nu = 2.0;
+                            continue;
+                        }
                         break Termination::Stalled;
                     }
                     iterations += 1;
@@ -340,8 +432,22 @@ impl ModeMatching {
             Some((t, jac)) if t == ev.theta => covariance_from_jacobian(&jac, data, &ev),
             _ => self.covariance(model, data, &ev)?,
         };
+        let theta = extrapolated.unwrap_or_else(|| ev.theta.clone());
+        let at_bound = (0..p)
+            .map(|i| {
+                let u = theta[i].ln();
+                if u >= u_hi[i] - 1e-9 {
+                    Some(AtBound::Upper)
+                } else if u <= u_lo[i] + 1e-9 {
+                    Some(AtBound::Lower)
+                } else {
+                    None
+                }
+            })
+            .collect();
         Ok(ModeMatchingResult {
-            theta: extrapolated.unwrap_or_else(|| ev.theta.clone()),
+            theta,
+            at_bound,
             covariance,
             termination,
             iterations,

@@ -36,9 +36,12 @@ use super::{BayesError, ShapeRow};
 use crate::core::model::Model;
 use crate::core::model::sparse::spmv_add;
 
+/// The pattern of one mode's augmented matrix and its symbolic LU.
+type Symbolic = (SymbolicSparseColMat<usize>, SymbolicLu<usize>);
+
 /// Per-mode symbolic analyses of the augmented systems, made on first use.
 pub(super) struct AugmentedSymbolic {
-    per_mode: Mutex<Vec<Option<(SymbolicSparseColMat<usize>, SymbolicLu<usize>)>>>,
+    per_mode: Mutex<Vec<Option<Symbolic>>>,
 }
 
 impl AugmentedSymbolic {
