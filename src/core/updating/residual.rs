@@ -11,7 +11,9 @@ use faer::Mat;
 
 use super::data::MeasuredData;
 use crate::core::modal::eigen::{STRICT_RESIDUAL, WarmBlock};
-use crate::core::modal::{EigenPairs, EigenSolver, ModalError, Nelson, mac, solver_for};
+use crate::core::modal::{
+    EigenPairs, EigenSolver, ModalError, Nelson, SPARSE_FROM_DOF, mac, solver_for,
+};
 use crate::core::model::Model;
 
 /// The residual at one θ.
@@ -49,9 +51,9 @@ impl Evaluation {
 /// the one the last solve gave, see [`Evaluator::set_warm_start`]).
 pub struct Evaluator {
     eigen: Box<dyn EigenSolver + Send>,
-    nelson: Nelson,
-    dphi: Mat<f64>,
-    dlambda: Vec<f64>,
+    /// Nelson workspaces: one, or for a large model one per core, each differentiating a
+    /// share of the paired modes on its own thread.
+    nelson: Vec<NelsonWorkspace>,
     /// θ, candidate count and eigenpairs of the last solve.
     last_eig: Option<(Vec<f64>, usize, EigenPairs)>,
     /// θ and, per model mode, ∂λ and ∂φ at the channels, of the last Jacobian.
@@ -82,9 +84,16 @@ impl Evaluator {
     ) -> Result<Self, ModalError> {
         Ok(Self {
             eigen,
-            nelson: Nelson::new(model)?,
-            dphi: Mat::zeros(model.n_dof(), model.n_params()),
-            dlambda: vec![0.0; model.n_params()],
+            nelson: {
+                let threads = if model.n_dof() >= SPARSE_FROM_DOF {
+                    std::thread::available_parallelism().map_or(1, |n| n.get().min(4))
+                } else {
+                    1
+                };
+                (0..threads)
+                    .map(|_| NelsonWorkspace::new(model))
+                    .collect::<Result<_, _>>()?
+            },
             last_eig: None,
             last_sensitivities: None,
             warm: false,
@@ -165,7 +174,6 @@ impl Evaluator {
         ev: &Evaluation,
     ) -> Result<Mat<f64>, ModalError> {
         let p = model.n_params();
-        let n = model.n_dof();
         let channels = model.channels();
         let mut jac = Mat::zeros(data.n_data(), p);
         // Sensitivities per distinct paired model mode: ∂λ (p) and ∂φ at every channel.
@@ -173,30 +181,39 @@ impl Evaluator {
             Some((t, c)) if t == ev.theta && c.len() == ev.eig.lambda.len() => c,
             _ => vec![None; ev.eig.lambda.len()],
         };
-        let mut phi = vec![0.0; n];
-        for &k in &ev.pairing {
-            if cache[k].is_some() {
-                continue;
+        // The distinct paired modes not yet differentiated, dealt round the workspaces.
+        let mut todo: Vec<usize> = ev
+            .pairing
+            .iter()
+            .copied()
+            .filter(|&k| cache[k].is_none())
+            .collect();
+        todo.sort_unstable();
+        todo.dedup();
+        let shares = self.nelson.len().min(todo.len()).max(1);
+        let done: Vec<Result<Vec<(usize, Sensitivity)>, ModalError>> = if shares == 1 {
+            vec![self.nelson[0].modes(model, ev, &todo)]
+        } else {
+            std::thread::scope(|scope| {
+                let handles: Vec<_> = self.nelson[..shares]
+                    .iter_mut()
+                    .enumerate()
+                    .map(|(t, ws)| {
+                        let mine: Vec<usize> =
+                            todo.iter().copied().skip(t).step_by(shares).collect();
+                        scope.spawn(move || ws.modes(model, ev, &mine))
+                    })
+                    .collect();
+                handles
+                    .into_iter()
+                    .map(|h| h.join().expect("a Nelson thread panicked"))
+                    .collect()
+            })
+        };
+        for share in done {
+            for (k, sens) in share? {
+                cache[k] = Some(sens);
             }
-            for (i, v) in phi.iter_mut().enumerate() {
-                *v = ev.eig.phi[(i, k)];
-            }
-            self.nelson.derivatives(
-                model,
-                &ev.theta,
-                k + 1,
-                ev.eig.lambda[k],
-                &phi,
-                &mut self.dlambda,
-                self.dphi.as_mut(),
-            )?;
-            let mut dch = Mat::zeros(channels.len(), p);
-            for (c, ch) in channels.iter().enumerate() {
-                for l in 0..p {
-                    dch[(c, l)] = ch.dofs.iter().map(|&(i, w)| w * self.dphi[(i, l)]).sum();
-                }
-            }
-            cache[k] = Some((self.dlambda.clone(), dch));
         }
         let cache = &self.last_sensitivities.insert((ev.theta.clone(), cache)).1;
         let mut row = 0;
@@ -243,6 +260,59 @@ impl Evaluator {
             }
         }
         Ok(jac)
+    }
+}
+
+/// One thread's Nelson workspace and buffers.
+struct NelsonWorkspace {
+    nelson: Nelson,
+    dphi: Mat<f64>,
+    dlambda: Vec<f64>,
+    phi: Vec<f64>,
+}
+
+impl NelsonWorkspace {
+    fn new(model: &Model) -> Result<Self, ModalError> {
+        Ok(Self {
+            nelson: Nelson::new(model)?,
+            dphi: Mat::zeros(model.n_dof(), model.n_params()),
+            dlambda: vec![0.0; model.n_params()],
+            phi: vec![0.0; model.n_dof()],
+        })
+    }
+
+    /// ∂λ and ∂φ at every channel of each model mode in `modes` (0-based) of `ev`.
+    fn modes(
+        &mut self,
+        model: &Model,
+        ev: &Evaluation,
+        modes: &[usize],
+    ) -> Result<Vec<(usize, Sensitivity)>, ModalError> {
+        let channels = model.channels();
+        let p = model.n_params();
+        let mut out = Vec::with_capacity(modes.len());
+        for &k in modes {
+            for (i, v) in self.phi.iter_mut().enumerate() {
+                *v = ev.eig.phi[(i, k)];
+            }
+            self.nelson.derivatives(
+                model,
+                &ev.theta,
+                k + 1,
+                ev.eig.lambda[k],
+                &self.phi,
+                &mut self.dlambda,
+                self.dphi.as_mut(),
+            )?;
+            let mut dch = Mat::zeros(channels.len(), p);
+            for (c, ch) in channels.iter().enumerate() {
+                for l in 0..p {
+                    dch[(c, l)] = ch.dofs.iter().map(|&(i, w)| w * self.dphi[(i, l)]).sum();
+                }
+            }
+            out.push((k, (self.dlambda.clone(), dch)));
+        }
+        Ok(out)
     }
 }
 
