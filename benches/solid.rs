@@ -14,7 +14,7 @@ use std::hint::black_box;
 use boltwatch::core::modal::{EigenSolver, SparseEigen};
 use boltwatch::core::model::Model;
 use boltwatch::core::simulate::{Noise, simulated_measured_data};
-use boltwatch::core::updating::Evaluator;
+use boltwatch::core::updating::{Evaluator, MeasuredData};
 use criterion::{Criterion, criterion_group, criterion_main};
 use faer::Side;
 use faer::sparse::SparseColMatRef;
@@ -31,14 +31,19 @@ fn four_bay() -> Model {
         .expect("shipped model assembles")
 }
 
-fn bench_iteration(c: &mut Criterion) {
-    let model = four_bay();
-    boltwatch::core::numerics_for(&model);
+/// The issue's data (see the module documentation), with faer set up for the model.
+fn issue_data(model: &Model) -> MeasuredData {
+    boltwatch::core::numerics_for(model);
     let stated = Noise {
         frequency_cov: 0.005,
         shape_nsd: 0.05,
     };
-    let data = simulated_measured_data(&model, &TRUTH, 6, stated, true, 7).unwrap();
+    simulated_measured_data(model, &TRUTH, 6, stated, true, 7).unwrap()
+}
+
+fn bench_iteration(c: &mut Criterion) {
+    let model = four_bay();
+    let data = issue_data(&model);
     let thetas = [[1.0; 4], [1.01; 4]];
     let mut flip = 0;
     let mut group = c.benchmark_group("four_bay_solid");
@@ -94,12 +99,7 @@ fn bench_iteration(c: &mut Criterion) {
 fn bench_bayesian(c: &mut Criterion) {
     use boltwatch::core::updating::bayesian::{BayesProblem, BayesSettings};
     let model = four_bay();
-    boltwatch::core::numerics_for(&model);
-    let stated = Noise {
-        frequency_cov: 0.005,
-        shape_nsd: 0.05,
-    };
-    let data = simulated_measured_data(&model, &TRUTH, 6, stated, true, 7).unwrap();
+    let data = issue_data(&model);
     let settings = BayesSettings {
         sigma_c: 100.0,
         prior_mean: vec![1.0; 4],

@@ -16,6 +16,11 @@ fn fd5(f: &dyn Fn(&[f64]) -> f64, x: &[f64], i: usize, h: f64) -> f64 {
     (-at(2.0 * h) + 8.0 * at(h) - 8.0 * at(-h) + at(-2.0 * h)) / (12.0 * h)
 }
 
+/// Spread connection stiffnesses of the lab frame (θ17: the modulus factor).
+const LAB_TRUTH: [f64; 17] = [
+    0.8, 1.6, 0.7, 1.2, 0.5, 1.1, 2.5, 0.9, 1.4, 0.6, 1.8, 0.75, 1.3, 0.55, 1.05, 2.2, 0.95,
+];
+
 fn cantilever_problem(sigma_c: f64) -> (BayesProblem, usize) {
     let truth = load_model("cantilever-truth");
     let model = load_model("cantilever-case1");
@@ -191,9 +196,7 @@ fn newton_and_alternating_reach_the_same_minimum_cantilever() {
 #[test]
 fn both_solvers_recover_noise_free_lab_frame() {
     let model = load_model("lab-frame");
-    let truth = [
-        0.8, 1.6, 0.7, 1.2, 0.5, 1.1, 2.5, 0.9, 1.4, 0.6, 1.8, 0.75, 1.3, 0.55, 1.05, 2.2, 0.95,
-    ];
+    let truth = LAB_TRUTH;
     let data = simulated_data(&model, &truth, 9, 0.01, 0.05, false, 1);
     let mut last = 0.0;
     for sigma_c in [1e3, 1e5] {
@@ -263,9 +266,7 @@ fn both_solvers_recover_noise_free_lab_frame() {
 #[test]
 fn sampling_std_matches_monte_carlo_lab_frame() {
     let model = load_model("lab-frame");
-    let truth = [
-        0.8, 1.6, 0.7, 1.2, 0.5, 1.1, 2.5, 0.9, 1.4, 0.6, 1.8, 0.75, 1.3, 0.55, 1.05, 2.2, 0.95,
-    ];
+    let truth = LAB_TRUTH;
     let p = truth.len();
     let settings = BayesSettings {
         sigma_c: 1e3,
@@ -365,9 +366,7 @@ fn refine_theta_maps_simplified_onto_fine_lab_frame() {
 #[test]
 fn sparse_and_dense_phi_substeps_agree() {
     let model = load_model("lab-frame");
-    let truth = [
-        0.8, 1.6, 0.7, 1.2, 0.5, 1.1, 2.5, 0.9, 1.4, 0.6, 1.8, 0.75, 1.3, 0.55, 1.05, 2.2, 0.95,
-    ];
+    let truth = LAB_TRUTH;
     let data = simulated_data(&model, &truth, 9, 0.01, 0.05, true, 5);
     let rel = |a: &Mat<f64>, b: &Mat<f64>| (a - b).norm_l2() / b.norm_l2();
     let col = |v: &[f64]| Mat::from_fn(v.len(), 1, |i, _| v[i]);

@@ -171,11 +171,11 @@ impl AugmentedFactor {
         let (col_ptr, row_idx, vals) = entries(model, a_vals, sigma_inv, rows, alpha);
         let dim = 2 * n + n_o;
         let mut cache = symbolic.per_mode.lock().expect("no panic while holding it");
+        // A mode's pattern depends only on the model and its measured entries: analysed
+        // once per problem.
         let (sym, lu_sym) = match &cache[m] {
-            Some((s, l)) if s.col_ptr() == col_ptr.as_slice() && s.row_idx() == row_idx => {
-                (s.clone(), l.clone())
-            }
-            _ => {
+            Some((s, l)) => (s.clone(), l.clone()),
+            None => {
                 let s = SymbolicSparseColMat::new_checked(dim, dim, col_ptr, None, row_idx);
                 let l = SymbolicLu::try_new(s.as_ref())
                     .map_err(|_| BayesError::PhiSystemSingular { mode: m + 1 })?;
@@ -211,9 +211,12 @@ impl AugmentedFactor {
         let mut x = self.lu.solve(&rhs);
         // One step of iterative refinement: x += Aug⁻¹ (rhs − Aug x).
         let mut res = rhs;
+        let (mut xj, mut ax) = (vec![0.0; dim], vec![0.0; dim]);
         for j in 0..k {
-            let xj: Vec<f64> = x.col(j).iter().copied().collect();
-            let mut ax = vec![0.0; dim];
+            xj.iter_mut()
+                .zip(x.col(j).iter())
+                .for_each(|(a, b)| *a = *b);
+            ax.iter_mut().for_each(|v| *v = 0.0);
             spmv_add(&self.matrix, &xj, 1.0, &mut ax);
             for (i, v) in ax.iter().enumerate() {
                 res[(i, j)] -= v;
