@@ -3,7 +3,7 @@
 use std::collections::HashMap;
 
 use super::element::{Section, frame_element, geometric_element};
-use super::sparse::{Accumulator, UnionPattern};
+use super::sparse::{Accumulator, Csc, UnionPattern};
 use super::spec::{MemberSpec, ModelSpec};
 use super::{Channel, Connection, Model, ModelError, Parameter, ParameterKind};
 
@@ -485,10 +485,11 @@ pub(super) fn assemble(spec: &ModelSpec) -> Result<Model, ModelError> {
         });
     }
 
+    let n = dofs.labels.len();
     finish(
         &spec.name,
         dofs.labels,
-        &acc,
+        acc.iter().map(|a| a.build(n)).collect(),
         parameters,
         connections,
         channels,
@@ -496,13 +497,12 @@ pub(super) fn assemble(spec: &ModelSpec) -> Result<Model, ModelError> {
     )
 }
 
-/// The common end of every assembly: builds `K0`, the `K_l` and `M` from their
-/// accumulators (in that order), checks that every DOF has mass (a DOF without makes `M`
+/// The common end of every assembly: takes `K0`, the `K_l` and `M` (in that order), checks that every DOF has mass (a DOF without makes `M`
 /// singular; name it rather than fail in the eigen solver) and forms the union pattern.
 pub(super) fn finish(
     name: &str,
     labels: Vec<String>,
-    accs: &[Accumulator],
+    mats: Vec<Csc>,
     parameters: Vec<Parameter>,
     connections: Vec<Connection>,
     channels: Vec<Channel>,
@@ -513,8 +513,7 @@ pub(super) fn finish(
         return Err(invalid("nodes", "the model has no free DOF"));
     }
     let p = parameters.len();
-    debug_assert_eq!(accs.len(), p + 2);
-    let mats: Vec<_> = accs.iter().map(|a| a.build(n)).collect();
+    debug_assert_eq!(mats.len(), p + 2);
     let m = mats[p + 1].clone();
     let mut diag = vec![0.0; n];
     {

@@ -39,7 +39,9 @@
 use serde::Deserialize;
 
 use super::hex20::{self, Material};
-use super::sparse::Accumulator;
+use faer::sparse::SymbolicSparseColMat;
+
+use super::sparse::{Accumulator, Csc};
 use super::{Channel, Connection, Model, ModelError, Parameter, ParameterKind};
 
 /// `[solid_frame]` in a model file.
@@ -462,7 +464,7 @@ pub(super) fn assemble(
         .collect();
     let n_dof = labels.len();
 
-    let (k0, mass) = element_matrices(&parts, &combos, &mat)?;
+    let (k0, mass) = element_matrices(&parts, &combos, &mat, n_dof)?;
     let mut k_params: Vec<Accumulator> = vec![Accumulator::default(); PARAMETERS.len()];
     for &(a, b2, param, k) in &springs {
         k_params[param].add_mapped(&[[k, -k], [-k, k]], &[&[(a, 1.0)], &[(b2, 1.0)]]);
@@ -510,13 +512,13 @@ pub(super) fn assemble(
             kind: ParameterKind::Connections(conn_of_param[l].clone()),
         })
         .collect();
-    let mut accs = vec![k0];
-    accs.extend(k_params);
-    accs.push(mass);
+    let mut mats = vec![k0];
+    mats.extend(k_params.iter().map(|a| a.build(n_dof)));
+    mats.push(mass);
     super::assemble::finish(
         name,
         labels,
-        &accs,
+        mats,
         parameters,
         connections,
         channels,
@@ -525,26 +527,125 @@ pub(super) fn assemble(
     .inspect(|m| debug_assert_eq!(m.n_dof(), n_dof))
 }
 
-/// `K` and `M` of every part's elements through `L` (each node's translations → `combos`).
+/// `K` and `M` of every part's elements through `L` (each node's translations → `combos`),
+/// assembled straight into their common sparse pattern (no triplet lists: on the four-bay
+/// frame those were ~450 MB, most of an update's peak memory, and filling fresh pages
+/// dominated the assembly time). The elements of a box mesh are one box translated, so
+/// each part's element matrices are computed once, from its first element.
 fn element_matrices(
     parts: &[Part],
     combos: &[Combos],
     mat: &Material,
-) -> Result<(Accumulator, Accumulator), ModelError> {
-    let mut k = Accumulator::default();
-    let mut m = Accumulator::default();
-    for p in parts {
-        for (e, nodes) in p.mesh.elements().into_iter().enumerate() {
-            let x = nodes.map(|n| p.mesh.coord(n));
-            let (ke, me) = hex20::element(&x, mat)
-                .map_err(|err| invalid("solid_frame", format!("{} element {e}: {err}", p.name)))?;
-            let maps: [&[(usize, f64)]; hex20::DOFS] =
-                std::array::from_fn(|d| combos[p.first + nodes[d / 3]][d % 3].as_slice());
-            k.add_mapped(&ke, &maps);
-            m.add_mapped(&me, &maps);
+    n: usize,
+) -> Result<(Csc, Csc), ModelError> {
+    // Every element's global DOFs, sorted, and the DOF → element incidence.
+    let elements: Vec<(usize, [usize; hex20::NODES])> = parts
+        .iter()
+        .enumerate()
+        .flat_map(|(ip, p)| p.mesh.elements().into_iter().map(move |e| (ip, e)))
+        .collect();
+    let terms = |ip: usize, nodes: &[usize; hex20::NODES], d: usize| {
+        combos[parts[ip].first + nodes[d / 3]][d % 3].as_slice()
+    };
+    let element_dofs: Vec<Vec<usize>> = elements
+        .iter()
+        .map(|(ip, nodes)| {
+            let mut dofs: Vec<usize> = (0..hex20::DOFS)
+                .flat_map(|d| terms(*ip, nodes, d).iter().map(|&(g, _)| g))
+                .collect();
+            dofs.sort_unstable();
+            dofs.dedup();
+            dofs
+        })
+        .collect();
+    let mut start = vec![0usize; n + 1];
+    for dofs in &element_dofs {
+        for &g in dofs {
+            start[g + 1] += 1;
         }
     }
-    Ok((k, m))
+    for j in 0..n {
+        start[j + 1] += start[j];
+    }
+    let mut incident = vec![0usize; start[n]];
+    let mut next = start.clone();
+    for (e, dofs) in element_dofs.iter().enumerate() {
+        for &g in dofs {
+            incident[next[g]] = e;
+            next[g] += 1;
+        }
+    }
+    // Column j's rows: every DOF of every element at j.
+    let mut col_ptr = Vec::with_capacity(n + 1);
+    let mut row_idx = Vec::new();
+    let mut mark = vec![usize::MAX; n];
+    col_ptr.push(0);
+    for j in 0..n {
+        let first = row_idx.len();
+        for &e in &incident[start[j]..start[j + 1]] {
+            for &i in &element_dofs[e] {
+                if mark[i] != j {
+                    mark[i] = j;
+                    row_idx.push(i);
+                }
+            }
+        }
+        row_idx[first..].sort_unstable();
+        col_ptr.push(row_idx.len());
+    }
+    drop((incident, mark, element_dofs));
+
+    let per_part: Vec<(Box<hex20::ElementMatrix>, Box<hex20::ElementMatrix>)> = parts
+        .iter()
+        .enumerate()
+        .map(|(ip, p)| {
+            let Some(&(_, nodes)) = elements.iter().find(|(i, _)| *i == ip) else {
+                return Ok((
+                    Box::new([[0.0; hex20::DOFS]; hex20::DOFS]),
+                    Box::new([[0.0; hex20::DOFS]; hex20::DOFS]),
+                ));
+            };
+            let x = nodes.map(|nd| p.mesh.coord(nd));
+            hex20::element(&x, mat)
+                .map_err(|err| invalid("solid_frame", format!("{} element 0: {err}", p.name)))
+        })
+        .collect::<Result<_, _>>()?;
+    // Scatter K and M on one thread each.
+    let scatter = |which: usize| {
+        let mut val = vec![0.0; row_idx.len()];
+        for (ip, nodes) in &elements {
+            let a = if which == 0 {
+                &per_part[*ip].0
+            } else {
+                &per_part[*ip].1
+            };
+            for q in 0..hex20::DOFS {
+                for &(gj, cj) in terms(*ip, nodes, q) {
+                    let rows = &row_idx[col_ptr[gj]..col_ptr[gj + 1]];
+                    for p in 0..hex20::DOFS {
+                        let v = a[p][q] * cj;
+                        if v == 0.0 {
+                            continue;
+                        }
+                        for &(gi, ci) in terms(*ip, nodes, p) {
+                            let pos = rows
+                                .binary_search(&gi)
+                                .expect("an element's DOF pair is in the pattern");
+                            val[col_ptr[gj] + pos] += ci * v;
+                        }
+                    }
+                }
+            }
+        }
+        val
+    };
+    let (k_val, m_val) = std::thread::scope(|scope| {
+        let k = scope.spawn(|| scatter(0));
+        let m = scatter(1);
+        (k.join().expect("the K scatter does not panic"), m)
+    });
+    let symbolic = SymbolicSparseColMat::new_checked(n, n, col_ptr, None, row_idx);
+    Ok((Csc::new(symbolic.clone(), k_val), Csc::new(symbolic, m_val)))
 }
 
 /// A solid cantilever: one box `[0, length] × [−width/2, width/2] × [−height/2, height/2]`
@@ -581,7 +682,7 @@ pub fn solid_cantilever(
             }
         })
         .collect();
-    let (k, m) = element_matrices(std::slice::from_ref(&part), &combos, &mat)?;
+    let (k, m) = element_matrices(std::slice::from_ref(&part), &combos, &mat, labels.len())?;
     let tip = part
         .mesh
         .node_at([2 * div[0], div[1], 2 * div[2]])
@@ -600,7 +701,7 @@ pub fn solid_cantilever(
     super::assemble::finish(
         "solid-cantilever",
         labels,
-        &[k, m],
+        vec![k, m],
         Vec::new(),
         Vec::new(),
         channels,

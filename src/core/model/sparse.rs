@@ -143,18 +143,34 @@ pub struct UnionPattern {
 
 impl UnionPattern {
     pub fn new(n: usize, mats: &[&Csc]) -> Self {
-        let mut trips = Vec::new();
-        for m in mats {
-            let s = m.symbolic();
-            for j in 0..n {
-                for &i in s.row_idx_of_col_raw(j) {
-                    trips.push((i, j, 0.0));
+        // Column by column: the rows of every matrix and the diagonal (kept so a row and
+        // column can always be pinned to the identity), sorted and deduplicated.
+        let entries: usize = mats.iter().map(|m| m.val().len()).sum();
+        let mut col_ptr = Vec::with_capacity(n + 1);
+        let mut row_idx = Vec::with_capacity(entries + n);
+        col_ptr.push(0);
+        for j in 0..n {
+            let first = row_idx.len();
+            row_idx.push(j);
+            for m in mats {
+                row_idx.extend_from_slice(m.symbolic().row_idx_of_col_raw(j));
+            }
+            row_idx[first..].sort_unstable();
+            let mut kept = first;
+            for r in first..row_idx.len() {
+                if r == first || row_idx[r] != row_idx[kept - 1] {
+                    row_idx[kept] = row_idx[r];
+                    kept += 1;
                 }
             }
+            row_idx.truncate(kept);
+            col_ptr.push(kept);
         }
-        // Also keep the full diagonal so a row/column can always be pinned to identity.
-        trips.extend((0..n).map(|i| (i, i, 0.0)));
-        let pattern = csc_from_triplets(n, trips.iter().copied());
+        let nnz = row_idx.len();
+        let pattern = Csc::new(
+            SymbolicSparseColMat::new_checked(n, n, col_ptr, None, row_idx),
+            vec![0.0; nnz],
+        );
         let ps = pattern.symbolic();
         let maps = mats
             .iter()
