@@ -96,9 +96,10 @@ pub struct SparseEigen {
     last_cycles: usize,
 }
 
-/// Threads the solver splits its block solves and mass products over.
+/// Tasks the solver splits its block solves and mass products into (run on rayon's pool,
+/// whose threads persist: a thread spawned per block cost a fresh stack each time).
 fn workers() -> usize {
-    std::thread::available_parallelism().map_or(1, |n| n.get().min(8))
+    rayon::current_num_threads().clamp(1, 8)
 }
 
 impl SparseEigen {
@@ -149,7 +150,7 @@ impl SparseEigen {
 /// fast as a sequential one, 4.7 against 2.3 ms per column in blocks of six).
 fn solve_split(llt: LltRef<'_, usize, f64>, x: MatMut<'_, f64>, mem: &mut [MemBuffer]) {
     let per = x.ncols().div_ceil(mem.len()).max(1);
-    std::thread::scope(|scope| {
+    rayon::scope(|scope| {
         let mut rest = x;
         for buf in mem.iter_mut() {
             let take = per.min(rest.ncols());
@@ -158,7 +159,7 @@ fn solve_split(llt: LltRef<'_, usize, f64>, x: MatMut<'_, f64>, mem: &mut [MemBu
             }
             let (chunk, tail) = rest.split_at_col_mut(take);
             rest = tail;
-            scope.spawn(move || {
+            scope.spawn(move |_| {
                 llt.solve_in_place_with_conj(Conj::No, chunk, Par::Seq, MemStack::new(buf));
             });
         }
@@ -168,7 +169,7 @@ fn solve_split(llt: LltRef<'_, usize, f64>, x: MatMut<'_, f64>, mem: &mut [MemBu
 /// `Y ← M X`, the columns shared among the worker threads (blocks of at least four).
 fn mass_split(mass: &Csc, x: MatRef<'_, f64>, y: MatMut<'_, f64>) {
     let per = x.ncols().div_ceil(workers()).max(4);
-    std::thread::scope(|scope| {
+    rayon::scope(|scope| {
         let mut rest = y;
         let mut first = 0;
         while rest.ncols() > 0 {
@@ -177,7 +178,7 @@ fn mass_split(mass: &Csc, x: MatRef<'_, f64>, y: MatMut<'_, f64>) {
             rest = tail;
             let xs = x.subcols(first, take);
             first += take;
-            scope.spawn(move || spmm(mass, xs, chunk));
+            scope.spawn(move |_| spmm(mass, xs, chunk));
         }
     });
 }
