@@ -12,6 +12,20 @@ pub mod plot;
 pub mod scenario;
 pub mod settings;
 
+/// Opts this process out of transparent huge pages (Linux; elsewhere nothing). The
+/// allocator asks for them on its arena, and every first touch of a 2 MiB page then zeroes
+/// all of it: `boltwatch modes -n 12` on the four-bay solid frame spent a third to half of
+/// its time in the kernel doing that, 1.28–1.76 s with huge pages against 1.00–1.22 s
+/// without (three runs each, after another process had used and freed 3 GB). Called first
+/// thing by the binary and the benchmarks.
+pub fn no_transparent_huge_pages() {
+    #[cfg(target_os = "linux")]
+    // SAFETY: PR_SET_THP_DISABLE only sets a flag of the calling process; it reads no memory.
+    unsafe {
+        libc::prctl(libc::PR_SET_THP_DISABLE, 1, 0, 0, 0);
+    }
+}
+
 /// mimalloc instead of the system allocator: the tracking path allocates and frees many
 /// short-lived vectors and matrices per modal set, and glibc's malloc spent ~10 % of a
 /// replay in consolidating free chunks (measured with `perf`, issue 4).

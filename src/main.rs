@@ -45,21 +45,8 @@ enum Command {
     ExportMatrices(export::ExportArgs),
 }
 
-/// Opts this process out of transparent huge pages. The allocator asks for them on its
-/// arena, and every first touch of a 2 MiB page then zeroes all of it: `boltwatch modes -n
-/// 12` on the four-bay solid frame spent a third to half of its time in the kernel doing
-/// that, 1.28–1.76 s with huge pages against 1.00–1.22 s without (three runs each, after
-/// another process had used and freed 3 GB).
-fn no_transparent_huge_pages() {
-    #[cfg(target_os = "linux")]
-    // SAFETY: PR_SET_THP_DISABLE only sets a flag of the calling process; it reads no memory.
-    unsafe {
-        libc::prctl(libc::PR_SET_THP_DISABLE, 1, 0, 0, 0);
-    }
-}
-
 fn main() -> ExitCode {
-    no_transparent_huge_pages();
+    boltwatch::no_transparent_huge_pages();
     let cli = Cli::parse();
     boltwatch::core::sequential_numerics();
     let result = match &cli.command {
