@@ -403,7 +403,7 @@ print(json.dumps((np.sqrt(lam) / (2 * np.pi)).tolist()))
 /// the truth from noise-free data): for this noise draw ε keeps falling, by less than
 /// 1e-3 per iteration, as θ4 → ∞, and unbounded the fit runs off and stalls. With the
 /// `update` command's bounds (1e-3…1e3 × nominal) it stops at θ4 = 1000, reported at its
-/// upper bound, σ(θ4) ≈ 1.7e6, while θ1–θ3 converge (measured: 9 iterations, θ1–θ3 within
+/// upper bound, σ(θ4) ≈ 1.7e6, while θ1–θ3 converge (measured: 7 iterations, θ1–θ3 within
 /// 0.7σ).
 #[test]
 fn mode_matching_recovers_the_four_bay_truth() {
