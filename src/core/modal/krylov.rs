@@ -72,10 +72,10 @@ const MAX_CYCLES: usize = 40;
 /// exactly, see the module documentation).
 pub const RESIDUAL_TOL: f64 = 1e-10;
 /// A direction of a new block whose `M`-norm falls below this fraction of its columns'
-/// norms before orthogonalization is dropped: it adds almost nothing new (in a restart, `K⁻¹M` of a converged mode is
-/// that mode), and the `K v` carried through the cancellation loses about
-/// `ε / fraction` of its relative accuracy, so near-dependent columns would spoil the
-/// projected `VᵀKV`.
+/// norms before orthogonalization is dropped: it adds almost nothing new (in a restart,
+/// `K⁻¹M` of a converged mode is that mode), and the `K v` carried through the
+/// cancellation loses about `ε / fraction` of its relative accuracy, so near-dependent
+/// directions would spoil the projected `VᵀKV`.
 const DEPENDENT: f64 = 1e-4;
 /// Seed of the cold-start block (fixed: results are reproducible).
 const COLD_SEED: u64 = 0x626f_6c74;
@@ -327,12 +327,13 @@ const NEARLY_ORTHONORMAL: f64 = 0.5;
 
 /// SVQB: the transformation `T` with `(WT)ᵀ M (WT) = I` from the Gram matrix
 /// `G = U S Uᵀ` of `W D` (`D = diag(scale)`). When every eigenvalue exceeds
-/// `NEARLY_ORTHONORMAL` and there is room for all columns, `T = D U S^{-1/2} Uᵀ` (Löwdin's symmetric
-/// orthogonalization: of all orthonormal bases of the span the nearest to `W D`, so nearly
-/// orthogonal columns, as in a restart from Ritz vectors, are barely mixed, and a
-/// converged mode is not smeared over the block by rounding). Otherwise the directions
-/// with eigenvalue above `keep`, at most `room`, the largest first: `T = D U_k S_k^{-1/2}`.
-/// `None` when none is kept. The scaling makes `keep` a bound on the squared `M`-norm of a
+/// `NEARLY_ORTHONORMAL` and there is room for all columns, `T = D U S^{-1/2} Uᵀ`
+/// (Löwdin's symmetric orthogonalization: of all orthonormal bases of the span the
+/// nearest to `W D`, so nearly orthogonal columns, as in a restart from Ritz vectors, are
+/// barely mixed, and a converged mode is not smeared over the block by rounding; with the
+/// rotation alone the lab frame's sway mode came out at 1.5× its rounding floor).
+/// Otherwise the directions with eigenvalue above `keep`, at most `room`, the largest
+/// first: `T = D U_k S_k^{-1/2}`. `None` when none is kept. The scaling makes `keep` a bound on the squared `M`-norm of a
 /// kept combination relative to the columns' scale.
 fn svqb(
     w: MatRef<'_, f64>,

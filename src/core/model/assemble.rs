@@ -497,8 +497,9 @@ pub(super) fn assemble(spec: &ModelSpec) -> Result<Model, ModelError> {
     )
 }
 
-/// The common end of every assembly: takes `K0`, the `K_l` and `M` (in that order), checks that every DOF has mass (a DOF without makes `M`
-/// singular; name it rather than fail in the eigen solver) and forms the union pattern.
+/// The common end of every assembly: takes `K0`, the `K_l` and `M` (in that order), checks
+/// that every DOF has mass (a DOF without makes `M` singular; name it rather than fail in
+/// the eigen solver) and forms the union pattern.
 pub(super) fn finish(
     name: &str,
     labels: Vec<String>,
