@@ -31,9 +31,7 @@ use faer::matrix_free::eigen::{
     PartialEigenParams, partial_self_adjoint_eigen, partial_self_adjoint_eigen_scratch,
 };
 use faer::sparse::SparseColMatRef;
-use faer::sparse::linalg::cholesky::{
-    SymbolicCholesky, SymbolicCholeskyRaw, SymmetricOrdering, factorize_symbolic_cholesky,
-};
+use faer::sparse::linalg::cholesky::{SymbolicCholesky, SymbolicCholeskyRaw};
 use faer::sparse::linalg::solvers::{Llt as SparseLlt, SymbolicLlt};
 use faer::{Col, Mat, MatMut, Par, Side};
 
@@ -179,13 +177,7 @@ impl DenseEigen {
         m.llt(Side::Lower)
             .map_err(|_| ModalError::MassNotPositiveDefinite)?;
         let n = model.n_dof();
-        let sturm_symbolic = factorize_symbolic_cholesky(
-            model.union_pattern().pattern.symbolic(),
-            Side::Lower,
-            SymmetricOrdering::Amd,
-            Default::default(),
-        )
-        .map_err(|e| ModalError::Factorization(format!("{e:?}")))?;
+        let sturm_symbolic = super::union_symbolic_cholesky(model)?;
         Ok(Self {
             m,
             k: Mat::zeros(n, n),

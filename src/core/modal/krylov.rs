@@ -40,9 +40,7 @@ use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::linalg::cholesky::llt::factor::LltRegularization;
 use faer::linalg::matmul::matmul;
 use faer::sparse::SparseColMatRef;
-use faer::sparse::linalg::cholesky::{
-    LltRef, SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky,
-};
+use faer::sparse::linalg::cholesky::{LltRef, SymbolicCholesky};
 use faer::{Accum, Conj, Mat, MatMut, MatRef, Par, Side};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -106,13 +104,7 @@ impl SparseEigen {
     /// Symbolic Cholesky factorization of the union pattern of `K0`, every `K_l` and `M`.
     pub fn new(model: &Model) -> Result<Self, ModalError> {
         let pattern = &model.union_pattern().pattern;
-        let symbolic = factorize_symbolic_cholesky(
-            pattern.symbolic(),
-            Side::Lower,
-            SymmetricOrdering::Amd,
-            Default::default(),
-        )
-        .map_err(|e| ModalError::Factorization(format!("{e:?}")))?;
+        let symbolic = super::union_symbolic_cholesky(model)?;
         let factor_mem = MemBuffer::new(
             symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()),
         );

@@ -29,6 +29,21 @@ pub fn solver_for(
     }
 }
 
+/// Symbolic Cholesky factorization (AMD ordering, lower side) of the model's union
+/// pattern of `K0`, every `K_l` and `M`: the one every sparse factorization of a
+/// `K(θ) − σM` reuses.
+pub(crate) fn union_symbolic_cholesky(
+    model: &crate::core::model::Model,
+) -> Result<faer::sparse::linalg::cholesky::SymbolicCholesky<usize>, ModalError> {
+    faer::sparse::linalg::cholesky::factorize_symbolic_cholesky(
+        model.union_pattern().pattern.symbolic(),
+        faer::Side::Lower,
+        faer::sparse::linalg::cholesky::SymmetricOrdering::Amd,
+        Default::default(),
+    )
+    .map_err(|e| ModalError::Factorization(format!("{e:?}")))
+}
+
 /// Failures of the modal layer.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum ModalError {

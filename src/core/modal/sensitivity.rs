@@ -23,9 +23,7 @@ use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
 use faer::linalg::solvers::Solve;
 use faer::sparse::SparseColMatRef;
-use faer::sparse::linalg::cholesky::{
-    SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky,
-};
+use faer::sparse::linalg::cholesky::SymbolicCholesky;
 use faer::sparse::linalg::solvers::{Lu, SymbolicLu};
 use faer::{Conj, Mat, MatMut, Par, Side};
 
@@ -62,13 +60,7 @@ impl Nelson {
         let pattern = &model.union_pattern().pattern;
         let symbolic = SymbolicLu::try_new(pattern.symbolic())
             .map_err(|e| ModalError::Factorization(format!("{e:?}")))?;
-        let cholesky = factorize_symbolic_cholesky(
-            pattern.symbolic(),
-            Side::Lower,
-            SymmetricOrdering::Amd,
-            Default::default(),
-        )
-        .map_err(|e| ModalError::Factorization(format!("{e:?}")))?;
+        let cholesky = super::union_symbolic_cholesky(model)?;
         let n = model.n_dof();
         let p = model.n_params();
         let mem = MemBuffer::new(StackReq::any_of(&[
