@@ -339,10 +339,13 @@ pub fn run_update(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
     ));
     let bar = pb.clone();
     prob.set_progress(Box::new(move |s, k, value, theta| {
-        bar.set_message(format!(
-            "stage σ_c = {s:.3e}, iteration {k}: objective {value:.6e}, θ = {}",
-            super::update::fmt_theta(theta)
-        ));
+        super::update::progress_line(
+            &bar,
+            format!(
+                "stage σ_c = {s:.3e}, iteration {k}: objective {value:.6e}, θ = {}",
+                super::update::fmt_theta(theta)
+            ),
+        );
     }));
     let started = Instant::now();
     let res = prob.solve(solver(b.solver), &theta0, max_iter)?;

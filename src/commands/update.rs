@@ -147,11 +147,14 @@ fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
     let pb = iteration_progress("mode matching");
     let bar = pb.clone();
     mm.set_progress(Box::new(move |k, rec| {
-        bar.set_message(format!(
-            "iteration {k}: ε = {:.4}, θ = {}",
-            rec.epsilon,
-            fmt_theta(&rec.theta)
-        ));
+        progress_line(
+            &bar,
+            format!(
+                "iteration {k}: ε = {:.4}, θ = {}",
+                rec.epsilon,
+                fmt_theta(&rec.theta)
+            ),
+        );
     }));
     // The paper's fixed-κ Gauss–Newton runs as published; the default is globalized.
     let (res, path) = match opts.step {
@@ -223,6 +226,15 @@ pub fn iteration_progress(what: &str) -> indicatif::ProgressBar {
     pb.set_prefix(what.to_string());
     pb.enable_steady_tick(std::time::Duration::from_millis(120));
     pb
+}
+
+/// Shows an iteration's line on `bar`; without a terminal (a log file, a service) the bar
+/// is hidden, so the line goes to stderr instead and a long run can still be followed.
+pub fn progress_line(bar: &indicatif::ProgressBar, line: String) {
+    if bar.is_hidden() {
+        eprintln!("{line}");
+    }
+    bar.set_message(line);
 }
 
 /// `--bounds`: `lo,hi` or `none`.

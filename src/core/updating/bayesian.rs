@@ -33,6 +33,7 @@ use faer::{Col, Conj, Mat, MatMut, Par, Side};
 mod augmented;
 mod covariance;
 mod sweep;
+mod trust;
 pub use covariance::{LCurvePoint, ThresholdFree, Tsvd, l_curve_corner};
 pub use sweep::{
     AlternatingRun, AutoSigma, SweepError, SweepPoint, SweepSettings, discrepancy_choice, log_grid,
@@ -752,11 +753,10 @@ pub const CONTINUATION_STAGE_ITERATIONS: usize = 50;
 /// Newton iterations allowed to a cold start (from `λ̂`, `θ0`) before the continuation
 /// gives it up and climbs to a larger σ_c.
 pub const COLD_START_ITERATIONS: usize = 30;
-/// A cold start is given up early, after this many iterations, if the damping `μ` has not
+/// A cold start is given up early, after this many iterations, if the trust-region
+/// multiplier `μ` (relative to the largest diagonal entry of the scaled Hessian) has not
 /// once fallen below [`STALL_DAMPING`]: its steps are still gradient-like, the sign of a
-/// start stuck on the wall of the narrow valley of a small σ_c. On the reference
-/// structures a cold start that converges has `μ ≤ 1e-3` within 3–5 iterations; one that
-/// stalls keeps `μ ≥ 0.1` for 20 or more.
+/// start stuck on the wall of the narrow valley of a small σ_c.
 pub const STALL_PROBE_ITERATIONS: usize = 6;
 /// See [`STALL_PROBE_ITERATIONS`].
 pub const STALL_DAMPING: f64 = 1e-2;
@@ -776,6 +776,20 @@ pub const CONTINUATION_RATIO: f64 = 3.162_277_660_168_379_5;
 pub const NEWTON_STEP_TOL: f64 = 1e-11;
 /// Stopping rule of the Newton solver: the predicted decrease of `F` relative to `F`.
 pub const NEWTON_DECREMENT_TOL: f64 = 1e-14;
+/// Relative resolution of an evaluation of `F`: a step predicted to lower `F` by less
+/// than this that does not lower it ends the solve (at the minimum if the Hessian is
+/// positive definite there). `F` is a sum of squares with cancellation inside the model
+/// term; on the four-bay solid frame its evaluations scatter by ~3e-10 relative, on the
+/// lab frame by ~1e-13.
+pub const NEWTON_RESOLUTION: f64 = 1e-10;
+/// Initial trust radius of the Newton solver (relative change of `(λ, θ)`, 2-norm).
+pub const TRUST_INITIAL_RADIUS: f64 = 0.5;
+/// Largest trust radius: below 1, so a step keeps every λ and θ positive.
+pub const TRUST_MAX_RADIUS: f64 = 0.9;
+/// Trust radius below which no step can lower `F` measurably: the solver stops.
+pub const TRUST_MIN_RADIUS: f64 = 1e-15;
+/// A step is accepted when it achieves this fraction of the predicted decrease.
+pub const TRUST_ACCEPT: f64 = 1e-4;
 /// Stopping rule of the alternating solver, as published: every `|Δθ_l| < 1e-9`.
 pub const ALTERNATING_TOL: f64 = 1e-9;
 
@@ -786,7 +800,8 @@ struct NewtonStop {
     step_tol: f64,
     /// Predicted decrease below this relative to `F`.
     decrement_tol: f64,
-    /// Give up after [`STALL_PROBE_ITERATIONS`] if `μ` never fell below [`STALL_DAMPING`].
+    /// Give up after [`STALL_PROBE_ITERATIONS`] if the relative trust-region multiplier
+    /// never fell below [`STALL_DAMPING`].
     stall_probe: bool,
 }
 
@@ -811,10 +826,12 @@ impl NewtonStop {
 }
 
 impl BayesProblem {
-    /// Damped Newton (Levenberg–Marquardt on the exact Hessian) on `F(λ, θ)` from
-    /// `λ = λ̂`, `θ = theta0`. A step is accepted when it lowers `F`; the damping `μ` scales
-    /// `diag(H)` and is raised until `H + μ diag(H)` is positive definite and the step
-    /// descends.
+    /// Damped Newton on `F(λ, θ)` from `λ = λ̂`, `θ = theta0`: a trust-region method on
+    /// the exact Hessian, in relative coordinates (see [`trust`]). A step is accepted when it
+    /// achieves [`TRUST_ACCEPT`] of the decrease its quadratic model predicts; the radius
+    /// doubles (up to [`TRUST_MAX_RADIUS`]) after a boundary step the model predicted well,
+    /// and shrinks after a poor one. Near a minimum with a positive definite Hessian the
+    /// steps are Newton's.
     pub fn solve_newton(
         &self,
         theta0: &[f64],
@@ -968,7 +985,7 @@ impl BayesProblem {
         let mut y: Vec<f64> = lambda0.to_vec();
         y.extend_from_slice(theta0);
         let mut cur = self.reduced(&y[..nm], &y[nm..])?;
-        let mut mu = 1e-6;
+        let mut delta = TRUST_INITIAL_RADIUS;
         let mut least_mu = f64::INFINITY;
         let mut iterations = 0;
         let mut converged = false;
@@ -995,37 +1012,52 @@ impl BayesProblem {
                     break;
                 }
             }
+            // Trust-region step in relative coordinates `y_i = d_i (1 + z_i)`: the region
+            // `‖z‖ ≤ Δ < 1` keeps every λ and θ positive, and scales the modes' eigenvalues
+            // (~1e5) and the parameters (~1) alike.
+            let d: Vec<f64> = y.iter().map(|v| v.abs().max(1e-12 * scale_y)).collect();
+            let h_scaled = Mat::from_fn(ny, ny, |i, j| d[i] * cur.hessian[(i, j)] * d[j]);
+            let g_scaled: Vec<f64> = (0..ny).map(|i| d[i] * cur.gradient[i]).collect();
+            let h_diag = (0..ny).map(|i| h_scaled[(i, i)].abs()).fold(0.0, f64::max);
             let mut accepted = false;
-            while mu < 1e20 {
-                let mut damped = cur.hessian.clone();
-                let dmax = (0..ny).map(|i| damped[(i, i)].abs()).fold(0.0, f64::max);
-                for i in 0..ny {
-                    damped[(i, i)] += mu * cur.hessian[(i, i)].abs().max(1e-12 * dmax);
-                }
-                let Ok(llt) = damped.llt(Side::Lower) else {
-                    mu = (mu * 10.0).max(1e-6);
+            while delta >= TRUST_MIN_RADIUS {
+                let Some(step) = trust::trust_region_step(&h_scaled, &g_scaled, delta) else {
+                    break;
+                };
+                let trial_y: Vec<f64> = (0..ny).map(|i| y[i] + d[i] * step.z[i]).collect();
+                let length = step.z.iter().map(|v| v * v).sum::<f64>().sqrt();
+                // θ > 0 and λ > 0 (K positive definite, modes of a stable structure); the
+                // radius keeps them, a trial outside is treated like one that ascends.
+                let trial = if trial_y.iter().all(|v| *v > 0.0) {
+                    self.reduced(&trial_y[..nm], &trial_y[nm..]).ok()
+                } else {
+                    None
+                };
+                let Some(trial) = trial else {
+                    delta = 0.25 * length.min(delta);
                     continue;
                 };
-                let g = Col::from_fn(ny, |i| -cur.gradient[i]);
-                let step = llt.solve(g.as_mat());
-                let trial_y: Vec<f64> = (0..ny).map(|i| y[i] + step[(i, 0)]).collect();
-                // θ > 0 and λ > 0 (K positive definite, modes of a stable structure): a
-                // step that leaves that region is rejected like one that does not descend.
-                if !trial_y.iter().all(|v| *v > 0.0) {
-                    mu = (mu * 10.0).max(1e-6);
-                    continue;
-                }
-                match self.reduced(&trial_y[..nm], &trial_y[nm..]) {
-                    Ok(trial) if trial.value < cur.value => {
-                        y = trial_y;
-                        cur = trial;
-                        least_mu = least_mu.min(mu);
-                        mu = (mu / 10.0).max(1e-12);
-                        accepted = true;
-                        break;
+                // Ratio of the actual to the predicted decrease.
+                let rho = (cur.value - trial.value) / step.predicted;
+                if trial.value < cur.value && rho > TRUST_ACCEPT {
+                    if rho > 0.75 && step.on_boundary {
+                        delta = (2.0 * delta).min(TRUST_MAX_RADIUS);
+                    } else if rho < 0.25 {
+                        delta = 0.25 * length;
                     }
-                    _ => mu = (mu * 10.0).max(1e-6),
+                    y = trial_y;
+                    cur = trial;
+                    least_mu = least_mu.min(step.mu / h_diag.max(f64::MIN_POSITIVE));
+                    accepted = true;
+                    break;
                 }
+                // A rejected step whose predicted decrease F cannot even resolve: the
+                // minimum is reached to F's rounding (shrinking the radius would only spend
+                // evaluations on rounding noise).
+                if step.predicted <= NEWTON_RESOLUTION * cur.value.abs() {
+                    break;
+                }
+                delta = 0.25 * length.min(delta);
             }
             iterations += 1;
             self.report(iterations, cur.value, &y[nm..]);
