@@ -601,8 +601,8 @@ impl BayesProblem {
     fn phi_star(&self, lambda: &[f64], theta: &[f64]) -> Result<Mat<f64>, BayesError> {
         let k = self.theta_matrices(theta);
         let mut phi = Mat::zeros(self.n, self.modes.len());
-        for (m, &lm) in lambda.iter().enumerate().take(self.modes.len()) {
-            let (ph, _) = self.mode_factor(&k, m, lm)?;
+        let cols = self.per_mode(|m| Ok(self.mode_factor(&k, m, lambda[m])?.0))?;
+        for (m, ph) in cols.into_iter().enumerate() {
             phi.col_mut(m)
                 .iter_mut()
                 .zip(&ph)
@@ -634,51 +634,29 @@ impl BayesProblem {
     pub fn reduced(&self, lambda: &[f64], theta: &[f64]) -> Result<Reduced, BayesError> {
         let (n, nm, p) = (self.n, self.modes.len(), self.p);
         let kt = self.theta_matrices(theta);
+        let parts = self.per_mode(|m| self.reduced_mode(&kt, m, lambda[m], theta))?;
         let mut phi = Mat::zeros(n, nm);
-        // J_p (14) at (λ, φ*, θ), accumulated below from the per-mode products.
+        // J_p (14) at (λ, φ*, θ), accumulated from the per-mode parts in mode order.
         let mut value = self.prior_term(theta);
         let ny = nm + p;
         let mut g = vec![0.0; ny];
         let mut h = Mat::zeros(ny, ny);
         let mut sens = Mat::zeros(ny, self.n_data());
         let mut col0 = 0;
-        let s2 = self.inv_s2;
-        let sig = s2.sqrt();
         let idx = |m: usize, j: usize| if j == 0 { m } else { nm + j - 1 };
-        for (m, mode) in self.modes.iter().enumerate() {
-            let (ph, fact) = self.mode_factor(&kt, m, lambda[m])?;
+        for (m, (mode, part)) in self.modes.iter().zip(parts).enumerate() {
             phi.col_mut(m)
                 .iter_mut()
-                .zip(&ph)
+                .zip(&part.phi)
                 .for_each(|(a, b)| *a = *b);
-            let pr = self.products(lambda[m], &ph, theta);
-            let dl = mode.lambda_hat - lambda[m];
-            value += mode.w_lambda * dl * dl + self.shape_misfit(m, &ph) + s2 * dot_self(&pr.aphi);
-            // Gradient.
-            g[m] = -2.0 * mode.w_lambda * dl - 2.0 * s2 * dot(&pr.mphi, &pr.aphi);
+            value += part.value;
+            g[m] = part.g_lambda;
             for l in 0..p {
-                g[nm + l] += 2.0 * s2 * dot(&pr.klphi[l], &pr.aphi);
+                g[nm + l] += part.g_theta[l];
             }
-            // Hessian of F per mode (see above). The λ_m–λ_m entry also gets 2 w_λm.
-            let rows = n + mode.rows.len();
-            let mut jy = Mat::zeros(rows, 1 + p);
-            let mut e = Mat::zeros(n, 1 + p);
-            let maphi = spmv(self.model.mass(), &pr.aphi);
-            for i in 0..n {
-                jy[(i, 0)] = -sig * pr.mphi[i];
-                e[(i, 0)] = -s2 * maphi[i];
-            }
-            for l in 0..p {
-                let klaphi = spmv(self.model.k_param(l), &pr.aphi);
-                for i in 0..n {
-                    jy[(i, 1 + l)] = sig * pr.klphi[l][i];
-                    e[(i, 1 + l)] = s2 * klaphi[i];
-                }
-            }
-            let (block, z) = fact.schur_block(jy, e);
             for i in 0..=p {
                 for j in 0..=p {
-                    h[(idx(m, i), idx(m, j))] += 2.0 * block[(i, j)];
+                    h[(idx(m, i), idx(m, j))] += 2.0 * part.block[(i, j)];
                 }
             }
             h[(m, m)] += 2.0 * mode.w_lambda;
@@ -687,7 +665,7 @@ impl BayesProblem {
             for (i, row) in mode.rows.iter().enumerate() {
                 let sw = row.w.sqrt();
                 for j in 0..=p {
-                    let v: f64 = row.dofs.iter().map(|&(d, c)| c * z[(d, j)]).sum();
+                    let v: f64 = row.dofs.iter().map(|&(d, c)| c * part.z[(d, j)]).sum();
                     sens[(idx(m, j), col0 + 1 + i)] = 2.0 * sw * v;
                 }
             }
@@ -705,7 +683,89 @@ impl BayesProblem {
             phi,
         })
     }
+
+    /// `f(m)` for every mode, in mode order. Large models run two modes at a time: each
+    /// sparse φ substep is memory-bound and only partly parallel inside, and two at once
+    /// (not more: each factorization of the four-bay frame holds ~1 GB) use both cores of
+    /// the reference machine.
+    fn per_mode<T: Send>(
+        &self,
+        f: impl Fn(usize) -> Result<T, BayesError> + Sync,
+    ) -> Result<Vec<T>, BayesError> {
+        let nm = self.modes.len();
+        if self.m_dense.is_some() || nm < 2 {
+            return (0..nm).map(f).collect();
+        }
+        use rayon::prelude::*;
+        (0..nm)
+            .into_par_iter()
+            .with_min_len(nm.div_ceil(MODES_AT_ONCE))
+            .map(&f)
+            .collect()
+    }
+
+    /// One mode's share of [`Self::reduced`]: `φ*_m`, its terms of `J_p`, of the gradient
+    /// and of the Hessian (the Schur block, before the factor 2), and `Z` for the data
+    /// sensitivity.
+    fn reduced_mode(
+        &self,
+        kt: &ThetaMatrices,
+        m: usize,
+        lambda: f64,
+        theta: &[f64],
+    ) -> Result<ModePart, BayesError> {
+        let (n, p) = (self.n, self.p);
+        let mode = &self.modes[m];
+        let s2 = self.inv_s2;
+        let sig = s2.sqrt();
+        let (ph, fact) = self.mode_factor(kt, m, lambda)?;
+        let pr = self.products(lambda, &ph, theta);
+        let dl = mode.lambda_hat - lambda;
+        let value = mode.w_lambda * dl * dl + self.shape_misfit(m, &ph) + s2 * dot_self(&pr.aphi);
+        let g_lambda = -2.0 * mode.w_lambda * dl - 2.0 * s2 * dot(&pr.mphi, &pr.aphi);
+        let g_theta = (0..p)
+            .map(|l| 2.0 * s2 * dot(&pr.klphi[l], &pr.aphi))
+            .collect();
+        // Hessian of F per mode (see `reduced`).
+        let rows = n + mode.rows.len();
+        let mut jy = Mat::zeros(rows, 1 + p);
+        let mut e = Mat::zeros(n, 1 + p);
+        let maphi = spmv(self.model.mass(), &pr.aphi);
+        for i in 0..n {
+            jy[(i, 0)] = -sig * pr.mphi[i];
+            e[(i, 0)] = -s2 * maphi[i];
+        }
+        for l in 0..p {
+            let klaphi = spmv(self.model.k_param(l), &pr.aphi);
+            for i in 0..n {
+                jy[(i, 1 + l)] = sig * pr.klphi[l][i];
+                e[(i, 1 + l)] = s2 * klaphi[i];
+            }
+        }
+        let (block, z) = fact.schur_block(jy, e);
+        Ok(ModePart {
+            phi: ph,
+            value,
+            g_lambda,
+            g_theta,
+            block,
+            z,
+        })
+    }
 }
+
+/// One mode's share of the reduced objective, its gradient and Hessian.
+struct ModePart {
+    phi: Vec<f64>,
+    value: f64,
+    g_lambda: f64,
+    g_theta: Vec<f64>,
+    block: Mat<f64>,
+    z: Mat<f64>,
+}
+
+/// Modes whose sparse φ substeps run at once (see [`BayesProblem::per_mode`]).
+const MODES_AT_ONCE: usize = 2;
 
 fn dot_self(a: &[f64]) -> f64 {
     dot(a, a)
