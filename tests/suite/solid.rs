@@ -495,3 +495,67 @@ fn sparse_jacobian_matches_central_differences() {
         assert!(err < 1e-5, "θ{}: {err:e}", l + 1);
     }
 }
+
+/// The Bayesian MAP's Newton solver on a coarser four-bay frame (the model file's
+/// construction with 14 × 1 × 1 elements per beam: 9,096 DOF, sparse φ substeps), the
+/// issue's case: 6 modes at all 66 channels, 0.5 % frequency CoV, 5 % NSD, σ_c = 1e3,
+/// prior std 1000, from θ0 = 1, through [`BayesProblem::solve`] as the command runs it.
+/// F has negative curvature between θ0 and the MAP; the Levenberg–Marquardt damping this
+/// solver had before its trust region crept ~6 % per iteration there and had not converged
+/// after 60 iterations on the noisy case. Now (measured): noise-free data, 10 iterations
+/// to the truth within 5e-7 relative (the prior's pull); noisy (seed 1), 12 iterations to
+/// a minimum within 2.5 posterior σ of the truth in every parameter. Asserted: the cold
+/// start converges (one stage) within 20 iterations, at a positive definite reduced
+/// Hessian; the truth recovered to 1e-4 from noise-free data, within 3σ from noisy data.
+#[test]
+fn bayesian_newton_converges_on_a_coarse_four_bay_frame() {
+    use boltwatch::core::updating::bayesian::{BayesProblem, BayesSettings, BayesSolver};
+    let text = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/config/models/four-bay-solid.toml"
+    ))
+    .unwrap()
+    .replace("divisions = [28, 1, 3]", "divisions = [14, 1, 1]");
+    let model = Model::from_toml(&text).unwrap();
+    assert_eq!(model.n_dof(), 9096);
+    let truth = [0.36, 0.36, 0.36, 0.5];
+    let settings = BayesSettings {
+        sigma_c: 1e3,
+        prior_mean: vec![1.0; 4],
+        prior_std: vec![1000.0; 4],
+    };
+    for noisy in [false, true] {
+        let data = super::common::simulated_data(&model, &truth, 6, 0.005, 0.05, noisy, 1);
+        let mut prob = BayesProblem::new(&model, &data, &settings).unwrap();
+        assert!(prob.is_sparse());
+        let res = prob.solve(BayesSolver::Newton, &[1.0; 4], 100).unwrap();
+        let std = prob
+            .threshold_free_covariance(&res.state)
+            .unwrap()
+            .posterior_theta_std();
+        println!(
+            "noisy {noisy}: {} iterations, converged {}, stages {}, θ = {:?}, std {:?}",
+            res.iterations,
+            res.converged,
+            res.stages.len(),
+            res.state.theta,
+            std
+        );
+        assert!(res.converged && res.stages.len() == 1 && res.iterations <= 20);
+        let red = prob.reduced(&res.state.lambda, &res.state.theta).unwrap();
+        assert!(red.hessian.llt(Side::Lower).is_ok(), "not a minimum");
+        for l in 0..4 {
+            let (t, want) = (res.state.theta[l], truth[l]);
+            if noisy {
+                assert!(
+                    (t - want).abs() < 3.0 * std[l],
+                    "θ{}: {t} ± {}",
+                    l + 1,
+                    std[l]
+                );
+            } else {
+                assert!((t - want).abs() < 1e-4 * want, "θ{}: {t}", l + 1);
+            }
+        }
+    }
+}
