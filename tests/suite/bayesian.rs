@@ -153,7 +153,8 @@ fn reduced_gradient_and_hessian_match_central_differences() {
 /// 1835 (θ 0.28327150 vs 0.28327137, J_p equal to 11 digits). At σ_c = 3000 the
 /// alternating solver needs 9529 iterations and its published stop (|Δθ| < 1e-9 per
 /// iteration) leaves it 2.3e-6 short in θ, as a slowly contracting iteration does; at
-/// σ_c = 10 and 100 it has not converged after 2·10⁵ iterations (Newton: 90 and 37).
+/// σ_c = 10 and 100 it has not converged after 2·10⁵ iterations (Newton: 23 and 10; 90 and
+/// 37 with the Levenberg–Marquardt damping it had before its trust region).
 #[test]
 fn newton_and_alternating_reach_the_same_minimum_cantilever() {
     let (prob, _) = cantilever_problem(1e4);
