@@ -96,6 +96,19 @@ fn bench_iteration(c: &mut Criterion) {
         })
     });
 
+    // As the evaluator solves: the 6 measured modes exact, the 10 candidates to pairing
+    // accuracy ([`EigenSolver::solve_relaxed`]).
+    group.bench_function("eigen_solve_relaxed", |b| {
+        b.iter(|| {
+            flip ^= 1;
+            black_box(
+                solver
+                    .solve_relaxed(&model, &thetas[flip], n_cand, 6)
+                    .unwrap(),
+            )
+        })
+    });
+
     let mut evaluator = Evaluator::new(&model).unwrap();
     let evs = thetas.map(|t| evaluator.evaluate(&model, &data, &t).unwrap());
     group.bench_function("jacobian", |b| {

@@ -71,6 +71,22 @@ pub trait EigenSolver {
         n_modes: usize,
     ) -> Result<EigenPairs, ModalError>;
 
+    /// The lowest `n_modes` eigenpairs at θ of which only the first `strict` must be
+    /// exact, for a fit that uses a few modes and searches the others for pairing: the
+    /// pairs and each pair's relative residual `‖Kφ − λMφ‖ / ‖Kφ‖`, the first `strict`
+    /// below [`STRICT_RESIDUAL`] and all below [`LOOSE_RESIDUAL`]. `None` when the solver
+    /// has no cheaper way to that than [`EigenSolver::solve`] (the dense solver's is exact
+    /// at once). Deterministic, like `solve`.
+    fn solve_relaxed(
+        &mut self,
+        _model: &Model,
+        _theta: &[f64],
+        _n_modes: usize,
+        _strict: usize,
+    ) -> Result<Option<(EigenPairs, Vec<f64>)>, ModalError> {
+        Ok(None)
+    }
+
     /// Turns warm starts on or off (off by default). A solver that has none ignores it.
     fn set_warm(&mut self, _on: bool) {}
 
@@ -97,14 +113,16 @@ pub trait EigenSolver {
     fn set_warm_block(&mut self, _block: Option<WarmBlock>) {}
 }
 
-/// Relative residual a warm-solved mode must reach when it is used for the fit. The
+/// Relative residual a warm-solved or relaxed-solved mode must reach when it is used for
+/// the fit. The
 /// eigenvector's error is about the residual (the slowest error component, along the first
 /// guard mode, gives a residual of its own size) and the eigenvalue's its square: 1e-7
 /// puts shapes within 1e-7 and frequencies within 1e-14 of the exact pencil, far inside
 /// any measurement's uncertainty (1 % frequency CoV, 5 % NSD).
 pub const STRICT_RESIDUAL: f64 = 1e-7;
 
-/// Relative residual every warm-solved mode must reach: enough for pairing by MAC
+/// Relative residual every warm-solved or relaxed-solved mode must reach: enough for
+/// pairing by MAC
 /// (MAC error about the residual squared).
 pub const LOOSE_RESIDUAL: f64 = 1e-3;
 

@@ -138,7 +138,7 @@ impl Evaluator {
         {
             return Ok(residual_at(model, data, theta, eig.clone(), n_cand));
         }
-        // Modes that must be exact in a warm solve: as many as there are measured modes
+        // Modes that must be exact in a warm or relaxed solve: as many as there are measured modes
         // (they usually pair with the lowest); any other mode that gets paired is checked
         // below.
         let strict = data.modes.len().min(n_cand);
@@ -147,7 +147,13 @@ impl Evaluator {
         } else {
             None
         };
-        let ev = match warm {
+        // Otherwise a relaxed solve, where the solver has one (the sparse solver: the modes
+        // beyond the measured ones only to pairing accuracy).
+        let quick = match warm {
+            Some(w) => Some(w),
+            None => self.eigen.solve_relaxed(model, theta, n_cand, strict)?,
+        };
+        let ev = match quick {
             Some((eig, residual)) => {
                 let ev = residual_at(model, data, theta, eig, n_cand);
                 if ev.pairing.iter().all(|&k| residual[k] <= STRICT_RESIDUAL) {
