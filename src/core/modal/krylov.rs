@@ -27,7 +27,7 @@
 //!
 //! Cost. On a model this size every step is memory-bound: a solve reads the factor (3.8M
 //! entries on the four-bay frame) twice, a mass product reads `M`, the orthogonalization
-//! reads the basis. So the solves and mass products take whole blocks (`spmm` reads `M`
+//! reads the basis. So the solves and mass products take whole blocks (`spmm_symmetric` reads `M`
 //! once per block), a block is orthonormalized within itself by SVQB (two small Gram
 //! eigenproblems and three products, not column by column), `KW` is updated once with both
 //! passes' coefficients, and buffers are kept between calls. The factorization and the
@@ -51,7 +51,7 @@ use super::eigen::{
     sign_convention, symmetrize,
 };
 use crate::core::model::Model;
-use crate::core::model::sparse::{Csc, spmm};
+use crate::core::model::sparse::{Csc, spmm_symmetric};
 
 /// Block columns beyond the wanted modes: `max(MIN_GUARD, n_modes / 2)`.
 const MIN_GUARD: usize = 8;
@@ -164,21 +164,9 @@ fn solve_split(llt: LltRef<'_, usize, f64>, x: MatMut<'_, f64>, mem: &mut [MemBu
     });
 }
 
-/// `Y ← M X`, the columns shared among the worker threads (blocks of at least four).
+/// `Y ← M X`, the rows shared among the worker threads ([`spmm_symmetric`]).
 fn mass_split(mass: &Csc, x: MatRef<'_, f64>, y: MatMut<'_, f64>) {
-    let per = x.ncols().div_ceil(workers()).max(4);
-    rayon::scope(|scope| {
-        let mut rest = y;
-        let mut first = 0;
-        while rest.ncols() > 0 {
-            let take = per.min(rest.ncols());
-            let (chunk, tail) = rest.split_at_col_mut(take);
-            rest = tail;
-            let xs = x.subcols(first, take);
-            first += take;
-            scope.spawn(move |_| spmm(mass, xs, chunk));
-        }
-    });
+    spmm_symmetric(mass, x, y, workers());
 }
 
 /// The basis of one cycle: `V` with `M`-orthonormal columns, `MV` and `KV`, stored in the
