@@ -40,7 +40,7 @@ use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::linalg::cholesky::llt::factor::LltRegularization;
 use faer::linalg::matmul::matmul;
 use faer::sparse::SparseColMatRef;
-use faer::sparse::linalg::cholesky::{LltRef, SymbolicCholesky};
+use faer::sparse::linalg::cholesky::LltRef;
 use faer::{Accum, Conj, Mat, MatMut, MatRef, Par, Side};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -50,8 +50,8 @@ use super::eigen::{
     EigenPairs, EigenSolver, LOOSE_RESIDUAL, STRICT_RESIDUAL, check_mode_count, check_positive,
     sign_convention, symmetrize,
 };
-use crate::core::model::Model;
 use crate::core::model::sparse::{Csc, spmm_symmetric};
+use crate::core::model::{Model, Reordered};
 
 /// Block columns beyond the wanted modes: `max(MIN_GUARD, n_modes / 2)`.
 const MIN_GUARD: usize = 8;
@@ -84,16 +84,17 @@ const DEPENDENT: f64 = 1e-4;
 /// Seed of the cold-start block (fixed: results are reproducible).
 const COLD_SEED: u64 = 0x626f_6c74;
 
-/// Sparse shift-invert block Krylov solver; keeps the symbolic factorization, the factor's
-/// storage and the basis buffers of one model between calls.
+/// Sparse shift-invert block Krylov solver; keeps the factor's storage and the basis
+/// buffers of one model between calls (the ordering and symbolic factorization are the
+/// model's, [`Model::reordered`]).
 pub struct SparseEigen {
-    symbolic: SymbolicCholesky<usize>,
     l_values: Vec<f64>,
+    /// `K(θ)`, lower triangle in the reordered numbering.
     k_values: Vec<f64>,
     /// Scratch of the numeric factorization.
     factor_mem: MemBuffer,
     /// Scratch of the triangular solves, one per worker thread.
-    solve_mem: Vec<MemBuffer>,
+    solve_mem: Vec<SolveScratch>,
     /// Columns `solve_mem` is sized for.
     solve_cols: usize,
     basis: Basis,
@@ -107,17 +108,16 @@ fn workers() -> usize {
 }
 
 impl SparseEigen {
-    /// Symbolic Cholesky factorization of the union pattern of `K0`, every `K_l` and `M`.
+    /// Buffers for the model's reordered pattern (computed here if it was not yet).
     pub fn new(model: &Model) -> Result<Self, ModalError> {
-        let pattern = &model.union_pattern().pattern;
-        let symbolic = super::union_symbolic_cholesky(model)?;
+        let order = super::reordered(model)?;
+        let symbolic = &order.symbolic;
         let factor_mem = MemBuffer::new(
             symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()),
         );
         Ok(Self {
             l_values: vec![0.0; symbolic.len_val()],
-            symbolic,
-            k_values: vec![0.0; pattern.val().len()],
+            k_values: vec![0.0; order.len()],
             factor_mem,
             solve_mem: Vec::new(),
             solve_cols: 0,
@@ -132,21 +132,38 @@ impl SparseEigen {
     }
 
     /// Sizes the solve scratch for blocks of up to `cols` columns over `workers()` threads.
-    fn reserve_solves(&mut self, cols: usize) {
+    fn reserve_solves(&mut self, order: &Reordered, cols: usize) {
         let w = workers();
         let per = cols.div_ceil(w).max(1);
         if self.solve_cols < per || self.solve_mem.len() != w {
-            let req: StackReq = self.symbolic.solve_in_place_scratch::<f64>(per, Par::Seq);
-            self.solve_mem = (0..w).map(|_| MemBuffer::new(req)).collect();
+            let req: StackReq = order.symbolic.solve_in_place_scratch::<f64>(per, Par::Seq);
+            self.solve_mem = (0..w)
+                .map(|_| SolveScratch {
+                    stack: MemBuffer::new(req),
+                    permuted: Mat::zeros(order.fwd.len(), per),
+                })
+                .collect();
             self.solve_cols = per;
         }
     }
 }
 
+/// One worker's scratch for its share of a block solve: faer's stack, and the share in the
+/// reordered numbering.
+struct SolveScratch {
+    stack: MemBuffer,
+    permuted: Mat<f64>,
+}
+
 /// `X ← K⁻¹ X`, the columns shared among the worker threads (each a sequential
 /// supernodal solve: on the four-bay solid frame faer's own parallel solve was half as
 /// fast as a sequential one, 4.7 against 2.3 ms per column in blocks of six).
-fn solve_split(llt: LltRef<'_, usize, f64>, x: MatMut<'_, f64>, mem: &mut [MemBuffer]) {
+fn solve_split(
+    llt: LltRef<'_, usize, f64>,
+    order: &Reordered,
+    x: MatMut<'_, f64>,
+    mem: &mut [SolveScratch],
+) {
     let per = x.ncols().div_ceil(mem.len()).max(1);
     rayon::scope(|scope| {
         let mut rest = x;
@@ -155,10 +172,22 @@ fn solve_split(llt: LltRef<'_, usize, f64>, x: MatMut<'_, f64>, mem: &mut [MemBu
             if take == 0 {
                 break;
             }
-            let (chunk, tail) = rest.split_at_col_mut(take);
+            let (mut chunk, tail) = rest.split_at_col_mut(take);
             rest = tail;
             scope.spawn(move |_| {
-                llt.solve_in_place_with_conj(Conj::No, chunk, Par::Seq, MemStack::new(buf));
+                let mut y = buf.permuted.as_mut().subcols_mut(0, take);
+                for c in 0..take {
+                    order.permute(col_slice(chunk.as_ref(), c), col_slice_mut(y.as_mut(), c));
+                }
+                llt.solve_in_place_with_conj(
+                    Conj::No,
+                    y.as_mut(),
+                    Par::Seq,
+                    MemStack::new(&mut buf.stack),
+                );
+                for c in 0..take {
+                    order.unpermute(col_slice(y.as_ref(), c), col_slice_mut(chunk.as_mut(), c));
+                }
             });
         }
     });
@@ -207,12 +236,13 @@ impl Basis {
         &mut self,
         mass: &Csc,
         llt: LltRef<'_, usize, f64>,
-        mem: &mut [MemBuffer],
+        order: &Reordered,
+        mem: &mut [SolveScratch],
         b: Mat<f64>,
     ) {
         let (n, r) = (b.nrows(), b.ncols());
         let mut w = b.clone();
-        solve_split(llt, w.as_mut(), mem);
+        solve_split(llt, order, w.as_mut(), mem);
         let mut kw = b;
         let mut mw = Mat::zeros(n, r);
         // ‖w‖²_M before the pass against the basis: ‖w‖²_M after it plus the squared
@@ -362,6 +392,13 @@ fn svqb(
     Some(t)
 }
 
+fn col_slice_mut(a: MatMut<'_, f64>, j: usize) -> &mut [f64] {
+    a.col_mut(j)
+        .try_as_col_major_mut()
+        .expect("columns of an owned matrix are contiguous")
+        .as_slice_mut()
+}
+
 fn col_slice(a: MatRef<'_, f64>, j: usize) -> &[f64] {
     a.col(j)
         .try_as_col_major()
@@ -445,13 +482,13 @@ impl SparseEigen {
         let n = model.n_dof();
         check_mode_count(n_modes, n)?;
         let q = (n_modes + MIN_GUARD.max(n_modes / 2)).min(n);
-        let pattern = &model.union_pattern().pattern;
-        model.shifted_stiffness_values(theta, 0.0, &mut self.k_values);
+        let order = super::reordered(model)?;
+        model.shifted_stiffness_reordered(order, theta, 0.0, &mut self.k_values);
         let b = cold_block(q);
-        self.reserve_solves(q.max(b));
-        let k = SparseColMatRef::new(pattern.symbolic(), &self.k_values);
-        // Sequential: faer's parallel factorization took 125 ms against 68 ms here.
-        let llt = self
+        self.reserve_solves(order, q.max(b));
+        let k = SparseColMatRef::new(order.lower.as_ref(), &self.k_values);
+        // Sequential: faer's parallel factorization took 92–112 ms against 43–49 ms here.
+        let llt = order
             .symbolic
             .factorize_numeric_llt(
                 &mut self.l_values,
@@ -478,7 +515,7 @@ impl SparseEigen {
         for cycle in 1..=MAX_CYCLES {
             // Basis of span{K⁻¹MX, (K⁻¹M)²X, …}, from the block MX in `rhs`.
             basis.reset((depth * rhs.ncols()).min(n));
-            basis.push_solved(mass, llt, mem, rhs);
+            basis.push_solved(mass, llt, order, mem, rhs);
             let mut block_start = 0;
             for _ in 1..depth {
                 let block_end = basis.len;
@@ -489,7 +526,7 @@ impl SparseEigen {
                     .mv
                     .subcols(block_start, block_end - block_start)
                     .to_owned();
-                basis.push_solved(mass, llt, mem, next);
+                basis.push_solved(mass, llt, order, mem, next);
                 block_start = block_end;
             }
             let m = basis.len;

@@ -44,6 +44,16 @@ pub(crate) fn union_symbolic_cholesky(
     .map_err(|e| ModalError::Factorization(format!("{e:?}")))
 }
 
+/// The model's reordered pattern for sparse factorizations
+/// ([`crate::core::model::Model::reordered`]).
+pub(crate) fn reordered(
+    model: &crate::core::model::Model,
+) -> Result<&crate::core::model::Reordered, ModalError> {
+    model
+        .reordered()
+        .map_err(|e| ModalError::Factorization(format!("{e:?}")))
+}
+
 /// Failures of the modal layer.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum ModalError {

@@ -23,7 +23,6 @@ use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
 use faer::linalg::solvers::Solve;
 use faer::sparse::SparseColMatRef;
-use faer::sparse::linalg::cholesky::SymbolicCholesky;
 use faer::sparse::linalg::solvers::{Lu, SymbolicLu};
 use faer::{Conj, Mat, MatMut, Par, Side};
 
@@ -37,17 +36,20 @@ pub const BACKWARD_TOL: f64 = 1e-12;
 
 /// Workspace for Nelson's method on one model.
 pub struct Nelson {
+    /// Symbolic LU of the union pattern (the fallback).
     symbolic: SymbolicLu<usize>,
-    cholesky: SymbolicCholesky<usize>,
     l_values: Vec<f64>,
     mem: MemBuffer,
+    /// The pinned `K(θ) − λM`, lower triangle in the reordered numbering
+    /// ([`Model::reordered`]; its symbolic `LDLᵀ` analysis is the model's).
     values: Vec<f64>,
-    /// `K(θ)` on the union pattern, for the θ in `k_theta` (empty: none yet), shared by
-    /// the modes of one Jacobian: each needs only `− λM` on top. Kept in place: a fresh
-    /// 27 MB copy per Jacobian (four-bay solid frame) cost 20–60 ms in page faults.
+    /// `K(θ)` there, for the θ in `k_theta` (empty: none yet), shared by the modes of one
+    /// Jacobian: each needs only `− λM` on top. Kept in place: a fresh copy per Jacobian
+    /// cost 20–60 ms in page faults on the four-bay solid frame.
     k_values: Vec<f64>,
     k_theta: Vec<f64>,
     m_phi: Vec<f64>,
+    /// Right-hand sides and solutions, in the reordered numbering.
     rhs: Mat<f64>,
     f: Mat<f64>,
     /// Scratch of length n: one right-hand side, and the two sums of the backward error.
@@ -57,12 +59,14 @@ pub struct Nelson {
 }
 
 impl Nelson {
-    /// Builds the symbolic LU of the union pattern of `K0`, every `K_l` and `M`.
+    /// Builds the symbolic LU of the union pattern of `K0`, every `K_l` and `M` (the
+    /// fallback), and sizes the `LDLᵀ` on the model's reordered pattern.
     pub fn new(model: &Model) -> Result<Self, ModalError> {
         let pattern = &model.union_pattern().pattern;
         let symbolic = SymbolicLu::try_new(pattern.symbolic())
             .map_err(|e| ModalError::Factorization(format!("{e:?}")))?;
-        let cholesky = super::union_symbolic_cholesky(model)?;
+        let order = super::reordered(model)?;
+        let cholesky = &order.symbolic;
         let n = model.n_dof();
         let p = model.n_params();
         let mem = MemBuffer::new(StackReq::any_of(&[
@@ -72,10 +76,9 @@ impl Nelson {
         Ok(Self {
             symbolic,
             l_values: vec![0.0; cholesky.len_val()],
-            cholesky,
             mem,
-            values: vec![0.0; pattern.val().len()],
-            k_values: vec![0.0; pattern.val().len()],
+            values: vec![0.0; order.len()],
+            k_values: vec![0.0; order.len()],
             k_theta: Vec::new(),
             m_phi: vec![0.0; n],
             work: [vec![0.0; n], vec![0.0; n], vec![0.0; n]],
@@ -87,7 +90,8 @@ impl Nelson {
 
     /// Eigenvalue derivatives `dlambda[l] = ∂λ/∂θ_l` and eigenvector derivatives
     /// `dphi[:, l] = ∂φ/∂θ_l` (n_dof × n_params) of the mass-normalized mode `(lambda, phi)`
-    /// of `K(θ)`. `mode` (1-based) only labels errors.
+    /// of `K(θ)`. `mode` (1-based) only labels errors. The columns of `dphi` must be
+    /// contiguous (an owned matrix's, or a column range of one).
     #[allow(clippy::too_many_arguments)] // the quantities of the formula, each distinct
     pub fn derivatives(
         &mut self,
@@ -101,33 +105,36 @@ impl Nelson {
     ) -> Result<(), ModalError> {
         let n = model.n_dof();
         let p = model.n_params();
-        // Pinned component: largest |φ_k|.
+        let order = super::reordered(model)?;
+        // Pinned component: largest |φ_k|; `kp` in the reordered numbering.
         let k = (0..n)
             .max_by(|&a, &b| phi[a].abs().total_cmp(&phi[b].abs()))
             .unwrap_or(0);
+        let kp = order.inv[k];
 
-        // A = K(θ) − λM on the union pattern, row and column k replaced by the identity.
+        // A = K(θ) − λM, row and column kp replaced by the identity.
         if self.k_theta != theta {
-            model.shifted_stiffness_values(theta, 0.0, &mut self.k_values);
+            model.shifted_stiffness_reordered(order, theta, 0.0, &mut self.k_values);
             self.k_theta.clear();
             self.k_theta.extend_from_slice(theta);
         }
         self.values.copy_from_slice(&self.k_values);
-        model.subtract_mass_values(lambda, &mut self.values);
-        let pattern = &model.union_pattern().pattern;
-        let sym = pattern.symbolic();
-        for j in 0..n {
-            let rows = sym.row_idx_of_col_raw(j);
-            let base = sym.col_ptr()[j];
-            if j == k {
-                for (pos, &i) in rows.iter().enumerate() {
-                    self.values[base + pos] = if i == k { 1.0 } else { 0.0 };
-                }
-            } else if let Ok(pos) = rows.binary_search(&k) {
-                self.values[base + pos] = 0.0;
+        model.subtract_mass_reordered(order, lambda, &mut self.values);
+        let lower = order.lower.as_ref();
+        // Column kp holds rows kp.. (the diagonal first); row kp lies in columns ..kp.
+        let first = lower.col_ptr()[kp];
+        for (pos, v) in self.values[first..lower.col_ptr()[kp + 1]]
+            .iter_mut()
+            .enumerate()
+        {
+            *v = if pos == 0 { 1.0 } else { 0.0 };
+        }
+        for j in 0..kp {
+            if let Ok(pos) = lower.row_idx_of_col_raw(j).binary_search(&kp) {
+                self.values[lower.col_ptr()[j] + pos] = 0.0;
             }
         }
-        let a = SparseColMatRef::new(sym, &self.values);
+        let a = SparseColMatRef::new(lower, &self.values);
 
         // Right-hand sides f_l = −(K_l − ∂λ_l M) φ with f_l[k] = 0.
         self.m_phi.iter_mut().for_each(|v| *v = 0.0);
@@ -143,12 +150,10 @@ impl Nelson {
                 .zip(&self.m_phi)
                 .for_each(|(fi, mp)| *fi = *dl * mp - *fi);
             f[k] = 0.0;
-            for (i, &v) in f.iter().enumerate() {
-                self.f[(i, l)] = v;
-            }
+            order.permute(f, col_mut(self.f.as_mut(), l));
         }
         self.rhs.copy_from(&self.f);
-        let ldlt_ok = match self.cholesky.factorize_numeric_ldlt(
+        let ldlt_ok = match order.symbolic.factorize_numeric_ldlt(
             &mut self.l_values,
             a,
             Side::Lower,
@@ -168,32 +173,90 @@ impl Nelson {
             }
             Err(_) => false,
         };
-        if !ldlt_ok {
+        // The solutions v_l, back in the model's numbering (in `dphi`).
+        if ldlt_ok {
+            for l in 0..p {
+                order.unpermute(col(self.rhs.as_ref(), l), col_mut(dphi.as_mut(), l));
+            }
+        } else {
             self.lu_fallbacks += 1;
-            let lu = Lu::try_new_with_symbolic(self.symbolic.clone(), a)
-                .map_err(|e| ModalError::Factorization(format!("{e:?}")))?;
-            self.rhs.copy_from(&self.f);
-            lu.solve_in_place(self.rhs.as_mut());
+            self.solve_lu(model, theta, lambda, k, dphi.as_mut())?;
         }
 
         // ∂φ_l = v_l + c_l φ, c_l = −φᵀ M v_l.
         for l in 0..p {
-            let v = self.rhs.col(l);
-            let c: f64 = -(0..n).map(|i| self.m_phi[i] * v[i]).sum::<f64>();
-            for i in 0..n {
-                dphi[(i, l)] = v[i] + c * phi[i];
+            let d = col_mut(dphi.as_mut(), l);
+            let c: f64 = -self
+                .m_phi
+                .iter()
+                .zip(d.iter())
+                .map(|(m, v)| m * v)
+                .sum::<f64>();
+            for (di, ph) in d.iter_mut().zip(phi) {
+                *di += c * ph;
             }
-            if !(0..n).all(|i| dphi[(i, l)].is_finite()) {
+            if !d.iter().all(|v| v.is_finite()) {
                 return Err(ModalError::RepeatedEigenvalue { mode });
             }
         }
         Ok(())
     }
+
+    /// The fallback: `(K − λM) v_l = f_l` with component `k` pinned, by a sparse LU with
+    /// partial pivoting on the union pattern (model numbering), into `v`.
+    fn solve_lu(
+        &mut self,
+        model: &Model,
+        theta: &[f64],
+        lambda: f64,
+        k: usize,
+        mut v: MatMut<'_, f64>,
+    ) -> Result<(), ModalError> {
+        let n = model.n_dof();
+        let pattern = &model.union_pattern().pattern;
+        let sym = pattern.symbolic();
+        let mut values = vec![0.0; pattern.val().len()];
+        model.shifted_stiffness_values(theta, lambda, &mut values);
+        for j in 0..n {
+            let rows = sym.row_idx_of_col_raw(j);
+            let base = sym.col_ptr()[j];
+            if j == k {
+                for (pos, &i) in rows.iter().enumerate() {
+                    values[base + pos] = if i == k { 1.0 } else { 0.0 };
+                }
+            } else if let Ok(pos) = rows.binary_search(&k) {
+                values[base + pos] = 0.0;
+            }
+        }
+        let a = SparseColMatRef::new(sym, &values);
+        let lu = Lu::try_new_with_symbolic(self.symbolic.clone(), a)
+            .map_err(|e| ModalError::Factorization(format!("{e:?}")))?;
+        let order = super::reordered(model)?;
+        for l in 0..v.ncols() {
+            order.unpermute(col(self.f.as_ref(), l), col_mut(v.as_mut(), l));
+        }
+        lu.solve_in_place(v);
+        Ok(())
+    }
+}
+
+fn col(a: faer::MatRef<'_, f64>, j: usize) -> &[f64] {
+    a.col(j)
+        .try_as_col_major()
+        .expect("columns are contiguous")
+        .as_slice()
+}
+
+fn col_mut(a: MatMut<'_, f64>, j: usize) -> &mut [f64] {
+    a.col_mut(j)
+        .try_as_col_major_mut()
+        .expect("columns are contiguous")
+        .as_slice_mut()
 }
 
 /// Normwise backward error `‖A v − f‖∞ / (‖|A||v|‖∞ + ‖f‖∞)` for `v = Σ_l v_l`,
-/// `f = Σ_l f_l` over the columns of the solutions `v` of `A v = f`; infinite if not finite.
-/// `r` and `s` are scratch of length n.
+/// `f = Σ_l f_l` over the columns of the solutions `v` of `A v = f`, `A` symmetric and
+/// given by its lower triangle; infinite if not finite. `r` and `s` are scratch of length n.
 fn backward_error(
     a: SparseColMatRef<'_, usize, f64>,
     v: faer::MatRef<'_, f64>,
@@ -203,13 +266,18 @@ fn backward_error(
 ) -> f64 {
     let n = a.nrows();
     let sym = a.symbolic();
+    let vsum: Vec<f64> = (0..n).map(|j| v.row(j).iter().sum()).collect();
     r.iter_mut().for_each(|x| *x = 0.0);
     s.iter_mut().for_each(|x| *x = 0.0);
     for j in 0..n {
-        let vj: f64 = v.row(j).iter().sum();
+        let vj = vsum[j];
         for (&i, &aij) in sym.row_idx_of_col_raw(j).iter().zip(a.val_of_col(j)) {
             r[i] += aij * vj;
             s[i] += (aij * vj).abs();
+            if i != j {
+                r[j] += aij * vsum[i];
+                s[j] += (aij * vsum[i]).abs();
+            }
         }
     }
     let mut num: f64 = 0.0;

@@ -547,6 +547,7 @@ pub(super) fn finish(
         connections,
         channels,
         union,
+        reordered: Default::default(),
         bayesian,
     })
 }

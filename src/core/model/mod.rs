@@ -16,7 +16,7 @@ pub mod spec;
 
 use faer::reborrow::ReborrowMut;
 use faer::{Mat, MatMut};
-pub use sparse::{Csc, UnionPattern};
+pub use sparse::{Csc, Reordered, UnionPattern};
 pub use spec::ModelSpec;
 
 /// What an updating parameter scales.
@@ -95,6 +95,8 @@ pub struct Model {
     channels: Vec<Channel>,
     /// Union of the patterns of K0, every K_l and M (positions 0, 1..=p, p+1 in `maps`).
     union: UnionPattern,
+    /// The union reordered for factorization, computed on first use ([`Model::reordered`]).
+    reordered: std::sync::OnceLock<std::sync::Arc<Reordered>>,
     /// The model file's defaults for the Bayesian MAP.
     pub bayesian: spec::BayesSpec,
 }
@@ -201,6 +203,39 @@ impl Model {
     }
     pub fn union_pattern(&self) -> &UnionPattern {
         &self.union
+    }
+
+    /// The union pattern reordered (AMD) and analysed for sparse factorizations, shared by
+    /// every solver of this model (computed once, on first use).
+    pub fn reordered(&self) -> Result<&Reordered, faer::sparse::FaerError> {
+        if let Some(r) = self.reordered.get() {
+            return Ok(r);
+        }
+        let r = std::sync::Arc::new(Reordered::new(&self.union)?);
+        Ok(self.reordered.get_or_init(|| r))
+    }
+
+    /// `K(θ) − σ M` on the value array of [`Model::reordered`]'s lower triangle, paper (1).
+    pub fn shifted_stiffness_reordered(
+        &self,
+        reordered: &Reordered,
+        theta: &[f64],
+        sigma: f64,
+        out: &mut [f64],
+    ) {
+        out.iter_mut().for_each(|v| *v = 0.0);
+        reordered.add_into(0, &self.k0, 1.0, out);
+        for (l, kl) in self.k_params.iter().enumerate() {
+            reordered.add_into(l + 1, kl, theta[l], out);
+        }
+        self.subtract_mass_reordered(reordered, sigma, out);
+    }
+
+    /// `out −= σ M` on the value array of [`Model::reordered`]'s lower triangle.
+    pub fn subtract_mass_reordered(&self, reordered: &Reordered, sigma: f64, out: &mut [f64]) {
+        if sigma != 0.0 {
+            reordered.add_into(self.k_params.len() + 1, &self.m, -sigma, out);
+        }
     }
 
     /// `K(θ) − σ M` on the union pattern's value array, paper (1).

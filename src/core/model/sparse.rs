@@ -1,6 +1,10 @@
 //! Sparse symmetric matrices as the model holds them, and the union pattern on which
 //! `K(θ) − λM` is formed without re-deriving structure.
 
+use faer::Side;
+use faer::sparse::linalg::cholesky::{
+    SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky,
+};
 use faer::sparse::{SparseColMat, SymbolicSparseColMat, Triplet};
 use faer::{MatMut, MatRef};
 
@@ -250,6 +254,155 @@ impl UnionPattern {
         let vals = mat.val();
         for (&pos, &v) in self.maps[k].iter().zip(vals) {
             out[pos] += alpha * v;
+        }
+    }
+}
+
+/// The union pattern reordered once for factorization: `P A Pᵀ` by AMD, stored as its lower
+/// triangle, with a symbolic Cholesky factorization of it in that order. Every sparse
+/// factorization of a `K(θ) − σM` is done on it. Given the union pattern and an AMD
+/// symbolic factorization, faer's numeric factorization permutes the full matrix to a
+/// triangle on every call; given the permuted triangle and an identity-ordered symbolic
+/// factorization it factorizes the values as they stand, and the values are half as many.
+/// On the four-bay solid frame a numeric `LLᵀ` took 45 ms the first way and 27.5 ms this
+/// way (the same factor: the identity-ordered symbolic analysis of the permuted matrix is
+/// the one faer runs after its own permutation).
+pub struct Reordered {
+    /// `fwd[new] = old`, `inv[old] = new`.
+    pub fwd: Vec<usize>,
+    pub inv: Vec<usize>,
+    /// Lower triangle of `P A Pᵀ`, rows sorted within each column.
+    pub lower: SymbolicSparseColMat<usize>,
+    /// Symbolic Cholesky factorization of `lower` (identity ordering, supernodal or
+    /// simplicial as faer chooses).
+    pub symbolic: SymbolicCholesky<usize>,
+    /// For each source matrix of the union, the position in `lower`'s values of each of
+    /// its stored entries, or `MIRROR` for an entry above the diagonal (whose value its
+    /// symmetric twin below carries).
+    maps: Vec<Vec<usize>>,
+}
+
+/// Marks a source entry above the diagonal of the reordered matrix in [`Reordered`].
+const MIRROR: usize = usize::MAX;
+
+impl std::fmt::Debug for Reordered {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Reordered")
+            .field("n", &self.fwd.len())
+            .field("lower_nnz", &self.lower.row_idx().len())
+            .field("factor_nnz", &self.symbolic.len_val())
+            .finish()
+    }
+}
+
+impl Reordered {
+    /// AMD ordering and symbolic factorization of a union pattern (symmetric, both
+    /// triangles stored).
+    pub fn new(union: &UnionPattern) -> Result<Self, faer::sparse::FaerError> {
+        let pattern = union.pattern.symbolic();
+        let n = pattern.nrows();
+        let amd = factorize_symbolic_cholesky(
+            pattern,
+            Side::Lower,
+            SymmetricOrdering::Amd,
+            Default::default(),
+        )?;
+        let (fwd, inv) = match amd.perm() {
+            Some(perm) => {
+                let (fwd, inv) = perm.arrays();
+                (fwd.to_vec(), inv.to_vec())
+            }
+            None => ((0..n).collect(), (0..n).collect()),
+        };
+        // The lower triangle of P A Pᵀ, by columns, each entry with its union position.
+        let mut cols: Vec<Vec<(usize, usize)>> = vec![Vec::new(); n];
+        let mut below = vec![MIRROR; pattern.row_idx().len()];
+        for j in 0..n {
+            let base = pattern.col_ptr()[j];
+            for (k, &i) in pattern.row_idx_of_col_raw(j).iter().enumerate() {
+                let (pi, pj) = (inv[i], inv[j]);
+                if pi >= pj {
+                    cols[pj].push((pi, base + k));
+                }
+            }
+        }
+        let mut col_ptr = Vec::with_capacity(n + 1);
+        let mut row_idx = Vec::with_capacity(pattern.row_idx().len() / 2 + n);
+        col_ptr.push(0);
+        for col in &mut cols {
+            col.sort_unstable();
+            for &(row, pos) in col.iter() {
+                below[pos] = row_idx.len();
+                row_idx.push(row);
+            }
+            col_ptr.push(row_idx.len());
+        }
+        // faer reads an identity-ordered pattern as its upper triangle: the transpose.
+        let mut upper_cols: Vec<Vec<usize>> = vec![Vec::new(); n];
+        for (j, col) in cols.iter().enumerate() {
+            for &(i, _) in col {
+                upper_cols[i].push(j);
+            }
+        }
+        let mut upper_ptr = Vec::with_capacity(n + 1);
+        let mut upper_idx = Vec::with_capacity(row_idx.len());
+        upper_ptr.push(0);
+        for col in &upper_cols {
+            upper_idx.extend_from_slice(col);
+            upper_ptr.push(upper_idx.len());
+        }
+        let upper = SymbolicSparseColMat::new_checked(n, n, upper_ptr, None, upper_idx);
+        let symbolic = factorize_symbolic_cholesky(
+            upper.as_ref(),
+            Side::Upper,
+            SymmetricOrdering::Identity,
+            Default::default(),
+        )?;
+        let lower = SymbolicSparseColMat::new_checked(n, n, col_ptr, None, row_idx);
+        let maps = union
+            .maps
+            .iter()
+            .map(|m| m.iter().map(|&pos| below[pos]).collect())
+            .collect();
+        Ok(Self {
+            fwd,
+            inv,
+            lower,
+            symbolic,
+            maps,
+        })
+    }
+
+    /// Number of stored values of the lower triangle.
+    pub fn len(&self) -> usize {
+        self.lower.row_idx().len()
+    }
+
+    /// Whether the pattern is empty (a model with no DOFs).
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// `out += alpha · (source matrix k)` on the lower triangle's value array.
+    pub fn add_into(&self, k: usize, mat: &Csc, alpha: f64, out: &mut [f64]) {
+        for (&pos, &v) in self.maps[k].iter().zip(mat.val()) {
+            if pos != MIRROR {
+                out[pos] += alpha * v;
+            }
+        }
+    }
+
+    /// `x_new[i] = x[fwd[i]]`: a vector into the reordered numbering.
+    pub fn permute(&self, x: &[f64], out: &mut [f64]) {
+        for (o, &old) in out.iter_mut().zip(&self.fwd) {
+            *o = x[old];
+        }
+    }
+
+    /// `x[i] = x_new[inv[i]]`: a vector back from the reordered numbering.
+    pub fn unpermute(&self, x_new: &[f64], out: &mut [f64]) {
+        for (o, &new) in out.iter_mut().zip(&self.inv) {
+            *o = x_new[new];
         }
     }
 }
