@@ -16,25 +16,33 @@
 //! sway (where axial stiffnesses of ~1e9 N/m cancel) exceeds 1e-10 of `‖Kv‖`; carried this
 //! way, the residuals of the lowest modes reach ~1e-10 like the dense solver's.
 //!
-//! Every solve builds a space of `3q` vectors from a seeded pseudo-random block of `q/4`
-//! (degree 12 in `K⁻¹M` rather than 3 for the same solves: fewer restarts); restarts are
-//! single subspace-iteration steps. On the four-bay solid frame (16 modes, q = 24) the
-//! first cycle leaves the wanted modes at 0.4–9e-10, a floor of the carried `KV`, and the
-//! restart takes them to ≤ 4e-12. Starting instead from the last call's Ritz vectors (θ 1 %
-//! away) was slower: they are converged enough that a Krylov block built on them is dropped
-//! as dependent, and what is left converges only linearly, by subspace iteration. Results
-//! are deterministic.
+//! A full solve ([`EigenSolver::solve`]) builds a space of `3q` vectors from a seeded
+//! pseudo-random block of `q/4` (degree 12 in `K⁻¹M` rather than 3 for the same solves:
+//! fewer restarts); restarts are single subspace-iteration steps. On the four-bay solid
+//! frame (16 modes, q = 24) the first cycle leaves the wanted modes at 0.4–9e-10, a floor
+//! of the carried `KV`, and the restart takes them to ≤ 4e-12. A relaxed solve
+//! ([`EigenSolver::solve_relaxed`], the evaluator's: only the measured modes exact, the
+//! other candidates for pairing) builds `2.5q` and stops after that cycle when its targets
+//! hold (see `RELAXED_COLD_HALVES`). Starting instead from the last call's Ritz vectors (θ
+//! 1 % away) was slower: they are converged enough that a Krylov block built on them is
+//! dropped as dependent, and what is left converges only linearly, by subspace iteration.
+//! Results are deterministic.
 //!
 //! Cost. On a model this size every step is memory-bound: a solve reads the factor (3.8M
 //! entries on the four-bay frame) twice, a mass product reads `M`, the orthogonalization
-//! reads the basis. So the solves and mass products take whole blocks (`spmm_symmetric` reads `M`
-//! once per block), a block is orthonormalized within itself by SVQB (two small Gram
-//! eigenproblems and three products, not column by column), `KW` is updated once with both
-//! passes' coefficients, and buffers are kept between calls. The factorization and the
-//! triangular solves run sequentially, the block's columns split over the cores: faer's
-//! parallel versions took 125 ms against 68 ms for the factorization and twice as long per
-//! column for the solves. Per solve of 16 modes: 1.0–1.2 s before, 0.43–0.48 s after
-//! (`cargo bench --bench solid -- eigen_solve`).
+//! reads the basis. So the solves and mass products take whole blocks
+//! (`spmm_symmetric` reads `M` once per block, split by rows), a block is orthonormalized
+//! within itself by SVQB (two small Gram eigenproblems and three products, not column by
+//! column), `KW` is updated once with both passes' coefficients, and buffers are kept
+//! between calls. `K(θ)` is factorized on the model's pattern reordered once
+//! ([`Model::reordered`]): faer then does not permute the matrix on every call (45 →
+//! 27.5 ms per factorization); the block solves permute their columns in and out. The
+//! factorization and the triangular solves run sequentially, the block's columns split
+//! over the cores: faer's parallel versions took 92–112 ms against 43–49 ms for the
+//! factorization and twice as long per column for the solves. Per solve of 16 modes
+//! (`cargo bench --bench solid -- eigen_solve`): 1.0–1.2 s before the blocking, 0.43–0.48 s
+//! after (on a slower day), 0.31–0.34 s with the reordering and row-split mass products;
+//! relaxed 0.23–0.26 s.
 
 use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::linalg::cholesky::llt::factor::LltRegularization;
