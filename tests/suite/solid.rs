@@ -170,13 +170,17 @@ fn a_slender_solid_cantilever_converges_to_euler_bernoulli() {
     );
 }
 
-fn four_bay() -> Model {
-    let text = std::fs::read_to_string(concat!(
+/// The shipped four-bay model file's text.
+fn four_bay_text() -> String {
+    std::fs::read_to_string(concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/config/models/four-bay-solid.toml"
     ))
-    .unwrap();
-    Model::from_toml(&text).unwrap()
+    .unwrap()
+}
+
+fn four_bay() -> Model {
+    Model::from_toml(&four_bay_text()).unwrap()
 }
 
 /// A two-bay frame with a coarse mesh: the same construction, small enough for the dense
@@ -598,12 +602,7 @@ fn sparse_jacobian_matches_central_differences() {
 #[test]
 fn bayesian_newton_converges_on_a_coarse_four_bay_frame() {
     use boltwatch::core::updating::bayesian::{BayesProblem, BayesSettings, BayesSolver};
-    let text = std::fs::read_to_string(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/config/models/four-bay-solid.toml"
-    ))
-    .unwrap()
-    .replace("divisions = [28, 1, 3]", "divisions = [14, 1, 1]");
+    let text = four_bay_text().replace("divisions = [28, 1, 3]", "divisions = [14, 1, 1]");
     let model = Model::from_toml(&text).unwrap();
     assert_eq!(model.n_dof(), 9096);
     let truth = [0.36, 0.36, 0.36, 0.5];

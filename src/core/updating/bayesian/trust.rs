@@ -67,16 +67,16 @@ pub(super) fn trust_region_step(h: &Mat<f64>, g: &[f64], delta: f64) -> Option<T
             .sum::<f64>()
             .sqrt();
         let gnorm = a.iter().map(|v| v * v).sum::<f64>().sqrt();
-        if in_min <= 1e-14 * gnorm.max(f64::MIN_POSITIVE) && {
-            let rest: f64 = a
-                .iter()
+        // Length of the step at μ = −λ_min without the smallest eigenspace.
+        let rest = || -> f64 {
+            a.iter()
                 .zip(&s)
                 .filter(|(_, si)| **si - lmin > tie)
                 .map(|(ai, si)| (ai / (si - lmin)).powi(2))
                 .sum::<f64>()
-                .sqrt();
-            rest < delta
-        } {
+                .sqrt()
+        };
+        if in_min <= 1e-14 * gnorm.max(f64::MIN_POSITIVE) && rest() < delta {
             // Hard case: g has no component along the smallest eigenvector, and even at
             // μ = −λ_min the step is inside; complete it to the boundary along that vector.
             let mut c: Vec<f64> = a
