@@ -14,7 +14,7 @@ use super::{load_model, parse_theta, write_json};
 use crate::core::model::Model;
 use crate::core::updating::bayesian::{
     AutoSigma, BayesProblem, BayesResult, BayesSettings, BayesSolver, ContinuationStage,
-    SweepPoint, SweepSettings, discrepancy_choice, log_grid, sweep_sigma,
+    SigmaTrial, SweepPoint, SweepSettings, discrepancy_choice, log_grid, sweep_sigma,
 };
 use crate::core::updating::{Evaluator, MeasuredData, ModeMatching, ModeMatchingOptions};
 use crate::plot::{Panel, Scale, Series, figure_svg};
@@ -142,7 +142,25 @@ fn choose_sigma(
             "σ_c by the discrepancy rule in [{:e}, {:e}]",
             range.0, range.1
         ));
-        let auto = AutoSigma::search(model, data, range.0, range.1, settings, AUTO_SIGMA_TOL)?;
+        let mut report = |t: SigmaTrial| {
+            let line = match t.misfit {
+                None => format!("σ_c trial {}: the MAP at σ_c = {:.4e}", t.index, t.sigma_c),
+                Some(m) => format!(
+                    "σ_c trial {}: σ_c = {:.4e}, misfit {m:.1} (target ν = {:.1})",
+                    t.index, t.sigma_c, t.target
+                ),
+            };
+            super::update::progress_line(&pb, line);
+        };
+        let auto = AutoSigma::search(
+            model,
+            data,
+            range.0,
+            range.1,
+            settings,
+            AUTO_SIGMA_TOL,
+            &mut report,
+        )?;
         pb.finish_and_clear();
         Ok((auto.sigma_c, Some(auto)))
     } else {

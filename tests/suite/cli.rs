@@ -200,6 +200,49 @@ fn bayesian_update_both_solvers_agree() {
     assert!(alt["bayesian"]["tsvd"].is_null());
 }
 
+/// `update --method bayesian --sigma-c auto` without a terminal (stderr to a pipe): each
+/// trial of the σ_c search is reported as it starts and as it ends, in order, and the
+/// trials reported are the ones the result lists (σ_c and misfit, as printed).
+#[test]
+fn automatic_sigma_search_reports_each_trial() {
+    let data = cantilever_data("cant-auto.json");
+    let out = tmp("cant-auto-out.json");
+    let u = update(
+        &model_path("cantilever-case1"),
+        data.to_str().unwrap(),
+        &out,
+        &["--method", "bayesian", "--sigma-c", "auto", "--no-tsvd"],
+    );
+    let stderr = String::from_utf8_lossy(&u.stderr);
+    assert!(u.status.success(), "{stderr}");
+    let trials = read_json(&out)["bayesian"]["sigma_c_auto"]["trials"]
+        .as_array()
+        .expect("the automatic choice lists its trials")
+        .clone();
+    assert!(!trials.is_empty());
+    let lines: Vec<&str> = stderr
+        .lines()
+        .filter(|l| l.starts_with("σ_c trial "))
+        .collect();
+    assert_eq!(lines.len(), 2 * trials.len(), "{stderr}");
+    for (i, t) in trials.iter().enumerate() {
+        let sigma = format!("{:.4e}", t["sigma_c"].as_f64().unwrap());
+        let misfit = format!("{:.1}", t["misfit"].as_f64().unwrap());
+        assert_eq!(
+            lines[2 * i],
+            format!("σ_c trial {}: the MAP at σ_c = {sigma}", i + 1)
+        );
+        assert!(
+            lines[2 * i + 1].starts_with(&format!(
+                "σ_c trial {}: σ_c = {sigma}, misfit {misfit} (target ν = ",
+                i + 1
+            )),
+            "{}",
+            lines[2 * i + 1]
+        );
+    }
+}
+
 /// `sweep-sigma` writes the σ_c study as JSON (every point, both solvers' iterations, the
 /// automatic choice and its rule) and as an SVG figure.
 #[test]

@@ -36,8 +36,8 @@ mod sweep;
 mod trust;
 pub use covariance::{LCurvePoint, ThresholdFree, Tsvd, l_curve_corner};
 pub use sweep::{
-    AlternatingRun, AutoSigma, SweepError, SweepPoint, SweepSettings, discrepancy_choice, log_grid,
-    sweep_sigma,
+    AlternatingRun, AutoSigma, SigmaTrial, SweepError, SweepPoint, SweepSettings,
+    discrepancy_choice, log_grid, sweep_sigma,
 };
 
 use super::data::MeasuredData;

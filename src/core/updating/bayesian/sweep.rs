@@ -148,6 +148,18 @@ pub fn sweep_sigma(
     Ok(out)
 }
 
+/// One trial of [`AutoSigma::search`], as it starts (`misfit` `None`) or ends.
+#[derive(Debug, Clone, Copy)]
+pub struct SigmaTrial {
+    /// 1-based.
+    pub index: usize,
+    pub sigma_c: f64,
+    /// `e_Mᵀ Σ_M⁻¹ e_M` at the trial's MAP.
+    pub misfit: Option<f64>,
+    /// The χ² expectation ν it is held to.
+    pub target: f64,
+}
+
 /// The automatic σ_c (module docs) and how it was found.
 #[derive(Debug, Clone)]
 pub struct AutoSigma {
@@ -195,6 +207,8 @@ pub fn discrepancy_choice(points: &[SweepPoint], target: f64) -> Option<AutoSigm
 impl AutoSigma {
     /// The discrepancy rule by bisection in `log σ_c` on `[from, to]` (each trial one MAP
     /// solve, warm-started from the nearest θ found so far), to `rel_tol` relative in σ_c.
+    /// `progress` hears of each trial as it starts (`None`) and when it ends (its misfit),
+    /// with the target ν: on a large model a trial takes minutes.
     pub fn search(
         model: &Model,
         data: &MeasuredData,
@@ -202,18 +216,13 @@ impl AutoSigma {
         to: f64,
         settings: &SweepSettings,
         rel_tol: f64,
+        progress: &mut dyn FnMut(SigmaTrial),
     ) -> Result<Self, SweepError> {
         log_grid(from, to, 2)?;
         let mut trials = Vec::new();
         let mut s = settings.clone();
         s.alternating_max_iterations = None;
         let mut eval = Evaluator::new(model)?;
-        let mut misfit_at = |sigma: f64, s: &mut SweepSettings| -> Result<f64, SweepError> {
-            let p = point(model, data, sigma, s, &mut eval)?;
-            s.theta0 = p.theta.clone();
-            trials.push((sigma, p.terms.measurement));
-            Ok(p.terms.measurement)
-        };
         let target = {
             let prob = BayesProblem::new(
                 model,
@@ -225,6 +234,20 @@ impl AutoSigma {
                 },
             )?;
             prob.misfit_dof()
+        };
+        let mut misfit_at = |sigma: f64, s: &mut SweepSettings| -> Result<f64, SweepError> {
+            let trial = |misfit| SigmaTrial {
+                index: trials.len() + 1,
+                sigma_c: sigma,
+                misfit,
+                target,
+            };
+            progress(trial(None));
+            let p = point(model, data, sigma, s, &mut eval)?;
+            progress(trial(Some(p.terms.measurement)));
+            s.theta0 = p.theta.clone();
+            trials.push((sigma, p.terms.measurement));
+            Ok(p.terms.measurement)
         };
         let m_lo = misfit_at(from, &mut s)?;
         let (sigma, misfit, met) = if m_lo <= target {
