@@ -49,7 +49,9 @@ pub struct UpdateArgs {
     pub eps_tol: Option<f64>,
     /// Mode matching: keep every θ_i within `lo,hi` times its nominal value, or `none`. A
     /// parameter the data cannot pin down then stops at a bound (reported as such: the
-    /// data only say it is beyond it) instead of running off while the fit stalls.
+    /// data only say it is beyond it) instead of running off while the fit stalls. The
+    /// bounds hold the Levenberg–Marquardt steps; with `--kappa` (the paper's fixed-step
+    /// Gauss–Newton, reproduced as published) they only clamp θ0.
     #[arg(long, default_value = "1e-3,1e3")]
     pub bounds: String,
     /// Maximum iterations (default: 200; 10⁶ for `--solver alternating`).
