@@ -53,11 +53,11 @@ use faer::{Accum, Conj, Mat, MatMut, MatRef, Par, Side};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use super::ModalError;
 use super::eigen::{
     EigenPairs, EigenSolver, LOOSE_RESIDUAL, STRICT_RESIDUAL, check_mode_count, check_positive,
     sign_convention, symmetrize,
 };
+use super::{ModalError, col_slice, col_slice_mut};
 use crate::core::model::sparse::{Csc, spmm_symmetric};
 use crate::core::model::{Model, Reordered};
 
@@ -398,20 +398,6 @@ fn svqb(
         }
     }
     Some(t)
-}
-
-fn col_slice_mut(a: MatMut<'_, f64>, j: usize) -> &mut [f64] {
-    a.col_mut(j)
-        .try_as_col_major_mut()
-        .expect("columns of an owned matrix are contiguous")
-        .as_slice_mut()
-}
-
-fn col_slice(a: MatRef<'_, f64>, j: usize) -> &[f64] {
-    a.col(j)
-        .try_as_col_major()
-        .expect("columns of an owned matrix are contiguous")
-        .as_slice()
 }
 
 fn dot(a: &[f64], b: &[f64]) -> f64 {

@@ -54,6 +54,23 @@ pub(crate) fn reordered(
         .map_err(|e| ModalError::Factorization(format!("{e:?}")))
 }
 
+/// Column `j` of a matrix whose columns are contiguous (an owned matrix's, or a column
+/// range of one), as a slice.
+pub(crate) fn col_slice(a: faer::MatRef<'_, f64>, j: usize) -> &[f64] {
+    a.col(j)
+        .try_as_col_major()
+        .expect("columns of an owned matrix are contiguous")
+        .as_slice()
+}
+
+/// [`col_slice`], mutable.
+pub(crate) fn col_slice_mut(a: faer::MatMut<'_, f64>, j: usize) -> &mut [f64] {
+    a.col_mut(j)
+        .try_as_col_major_mut()
+        .expect("columns of an owned matrix are contiguous")
+        .as_slice_mut()
+}
+
 /// Failures of the modal layer.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum ModalError {

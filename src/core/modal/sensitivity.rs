@@ -26,7 +26,7 @@ use faer::sparse::SparseColMatRef;
 use faer::sparse::linalg::solvers::{Lu, SymbolicLu};
 use faer::{Conj, Mat, MatMut, Par, Side};
 
-use super::ModalError;
+use super::{ModalError, col_slice, col_slice_mut};
 use crate::core::model::Model;
 use crate::core::model::sparse::spmv_add;
 
@@ -150,7 +150,7 @@ impl Nelson {
                 .zip(&self.m_phi)
                 .for_each(|(fi, mp)| *fi = *dl * mp - *fi);
             f[k] = 0.0;
-            order.permute(f, col_mut(self.f.as_mut(), l));
+            order.permute(f, col_slice_mut(self.f.as_mut(), l));
         }
         self.rhs.copy_from(&self.f);
         let ldlt_ok = match order.symbolic.factorize_numeric_ldlt(
@@ -176,7 +176,10 @@ impl Nelson {
         // The solutions v_l, back in the model's numbering (in `dphi`).
         if ldlt_ok {
             for l in 0..p {
-                order.unpermute(col(self.rhs.as_ref(), l), col_mut(dphi.as_mut(), l));
+                order.unpermute(
+                    col_slice(self.rhs.as_ref(), l),
+                    col_slice_mut(dphi.as_mut(), l),
+                );
             }
         } else {
             self.lu_fallbacks += 1;
@@ -185,7 +188,7 @@ impl Nelson {
 
         // ∂φ_l = v_l + c_l φ, c_l = −φᵀ M v_l.
         for l in 0..p {
-            let d = col_mut(dphi.as_mut(), l);
+            let d = col_slice_mut(dphi.as_mut(), l);
             let c: f64 = -self
                 .m_phi
                 .iter()
@@ -233,25 +236,11 @@ impl Nelson {
             .map_err(|e| ModalError::Factorization(format!("{e:?}")))?;
         let order = super::reordered(model)?;
         for l in 0..v.ncols() {
-            order.unpermute(col(self.f.as_ref(), l), col_mut(v.as_mut(), l));
+            order.unpermute(col_slice(self.f.as_ref(), l), col_slice_mut(v.as_mut(), l));
         }
         lu.solve_in_place(v);
         Ok(())
     }
-}
-
-fn col(a: faer::MatRef<'_, f64>, j: usize) -> &[f64] {
-    a.col(j)
-        .try_as_col_major()
-        .expect("columns are contiguous")
-        .as_slice()
-}
-
-fn col_mut(a: MatMut<'_, f64>, j: usize) -> &mut [f64] {
-    a.col_mut(j)
-        .try_as_col_major_mut()
-        .expect("columns are contiguous")
-        .as_slice_mut()
 }
 
 /// Normwise backward error `‖A v − f‖∞ / (‖|A||v|‖∞ + ‖f‖∞)` for `v = Σ_l v_l`,
