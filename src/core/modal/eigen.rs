@@ -72,18 +72,17 @@ pub trait EigenSolver {
     ) -> Result<EigenPairs, ModalError>;
 
     /// The lowest `n_modes` eigenpairs at θ of which only the first `strict` must be
-    /// exact, for a fit that uses a few modes and searches the others for pairing: the
-    /// pairs and each pair's relative residual `‖Kφ − λMφ‖ / ‖Kφ‖`, the first `strict`
-    /// below [`STRICT_RESIDUAL`] and all below [`LOOSE_RESIDUAL`]. `None` when the solver
-    /// has no cheaper way to that than [`EigenSolver::solve`] (the dense solver's is exact
-    /// at once). Deterministic, like `solve`.
+    /// exact, for a fit that uses a few modes and searches the others for pairing
+    /// ([`TargetedPairs`]). `None` when the solver has no cheaper way to that than
+    /// [`EigenSolver::solve`] (the dense solver's is exact at once). Deterministic, like
+    /// `solve`.
     fn solve_relaxed(
         &mut self,
         _model: &Model,
         _theta: &[f64],
         _n_modes: usize,
         _strict: usize,
-    ) -> Result<Option<(EigenPairs, Vec<f64>)>, ModalError> {
+    ) -> Result<Option<TargetedPairs>, ModalError> {
         Ok(None)
     }
 
@@ -91,16 +90,15 @@ pub trait EigenSolver {
     fn set_warm(&mut self, _on: bool) {}
 
     /// A warm solve from the last solve's block, when warm starts are on, a block exists
-    /// and θ is near its θ: the pairs and each pair's relative residual
-    /// `‖Kφ − λMφ‖ / ‖Kφ‖`, the first `strict` of them below [`STRICT_RESIDUAL`] and all
-    /// below [`LOOSE_RESIDUAL`]. `None` when that does not hold (solve cold instead).
+    /// and θ is near its θ ([`TargetedPairs`]). `None` when that does not hold (solve cold
+    /// instead).
     fn solve_warm(
         &mut self,
         _model: &Model,
         _theta: &[f64],
         _n_modes: usize,
         _strict: usize,
-    ) -> Result<Option<(EigenPairs, Vec<f64>)>, ModalError> {
+    ) -> Result<Option<TargetedPairs>, ModalError> {
         Ok(None)
     }
 
@@ -112,6 +110,12 @@ pub trait EigenSolver {
     /// Replaces that block (a restored checkpoint).
     fn set_warm_block(&mut self, _block: Option<WarmBlock>) {}
 }
+
+/// Eigenpairs with each pair's relative residual `‖Kφ − λMφ‖ / ‖Kφ‖`, the first `strict`
+/// of them below [`STRICT_RESIDUAL`] and all below [`LOOSE_RESIDUAL`]: what a warm or a
+/// relaxed solve returns. The evaluator accepts it when every paired mode is below
+/// `STRICT_RESIDUAL`, and solves in full otherwise.
+pub type TargetedPairs = (EigenPairs, Vec<f64>);
 
 /// Relative residual a warm-solved or relaxed-solved mode must reach when it is used for
 /// the fit. The
@@ -293,7 +297,7 @@ impl EigenSolver for DenseEigen {
         theta: &[f64],
         n_modes: usize,
         strict: usize,
-    ) -> Result<Option<(EigenPairs, Vec<f64>)>, ModalError> {
+    ) -> Result<Option<TargetedPairs>, ModalError> {
         let Some(block) = self.block.as_ref().filter(|b| {
             self.warm
                 && b.theta.len() == theta.len()
@@ -630,8 +634,7 @@ mod tests {
     /// number of eigenvalues below σ.
     #[test]
     fn sturm_count_is_the_number_of_eigenvalues_below_the_shift() {
-        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/config/models/lab-frame.toml");
-        let model = Model::from_toml(&std::fs::read_to_string(path).unwrap()).unwrap();
+        let model = crate::core::model::lab_frame();
         let theta = model.nominal_theta();
         let mut solver = DenseEigen::new(&model).unwrap();
         let pairs = solver.solve(&model, &theta, 30).unwrap();

@@ -54,8 +54,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::eigen::{
-    EigenPairs, EigenSolver, LOOSE_RESIDUAL, STRICT_RESIDUAL, check_mode_count, check_positive,
-    sign_convention, symmetrize,
+    EigenPairs, EigenSolver, LOOSE_RESIDUAL, STRICT_RESIDUAL, TargetedPairs, check_mode_count,
+    check_positive, sign_convention, symmetrize,
 };
 use super::{ModalError, col_slice, col_slice_mut};
 use crate::core::model::sparse::{Csc, spmm_symmetric};
@@ -453,7 +453,7 @@ impl EigenSolver for SparseEigen {
         theta: &[f64],
         n_modes: usize,
         strict: usize,
-    ) -> Result<Option<(EigenPairs, Vec<f64>)>, ModalError> {
+    ) -> Result<Option<TargetedPairs>, ModalError> {
         let target = Target {
             strict,
             strict_tol: STRICT_RESIDUAL,
@@ -472,7 +472,7 @@ impl SparseEigen {
         theta: &[f64],
         n_modes: usize,
         target: Target,
-    ) -> Result<(EigenPairs, Vec<f64>), ModalError> {
+    ) -> Result<TargetedPairs, ModalError> {
         let n = model.n_dof();
         check_mode_count(n_modes, n)?;
         let q = (n_modes + MIN_GUARD.max(n_modes / 2)).min(n);

@@ -103,13 +103,10 @@ impl Nelson {
         dlambda: &mut [f64],
         mut dphi: MatMut<'_, f64>,
     ) -> Result<(), ModalError> {
-        let n = model.n_dof();
         let p = model.n_params();
         let order = super::reordered(model)?;
-        // Pinned component: largest |φ_k|; `kp` in the reordered numbering.
-        let k = (0..n)
-            .max_by(|&a, &b| phi[a].abs().total_cmp(&phi[b].abs()))
-            .unwrap_or(0);
+        // `kp`: the pinned component in the reordered numbering.
+        let k = pinned_component(phi);
         let kp = order.inv[k];
 
         // A = K(θ) − λM, row and column kp replaced by the identity.
@@ -169,7 +166,12 @@ impl Nelson {
                     Par::Seq,
                     MemStack::new(&mut self.mem),
                 );
-                backward_error(a, self.rhs.as_ref(), self.f.as_ref(), r, s) <= BACKWARD_TOL
+                backward_error(
+                    a,
+                    self.rhs.as_ref(),
+                    self.f.as_ref(),
+                    [f.as_mut_slice(), r.as_mut_slice(), s.as_mut_slice()],
+                ) <= BACKWARD_TOL
             }
             Err(_) => false,
         };
@@ -243,19 +245,27 @@ impl Nelson {
     }
 }
 
+/// The component Nelson's method pins: the largest `|φ_k|`.
+fn pinned_component(phi: &[f64]) -> usize {
+    (0..phi.len())
+        .max_by(|&a, &b| phi[a].abs().total_cmp(&phi[b].abs()))
+        .unwrap_or(0)
+}
+
 /// Normwise backward error `‖A v − f‖∞ / (‖|A||v|‖∞ + ‖f‖∞)` for `v = Σ_l v_l`,
 /// `f = Σ_l f_l` over the columns of the solutions `v` of `A v = f`, `A` symmetric and
-/// given by its lower triangle; infinite if not finite. `r` and `s` are scratch of length n.
+/// given by its lower triangle; infinite if not finite. `scratch`: three vectors of length n.
 fn backward_error(
     a: SparseColMatRef<'_, usize, f64>,
     v: faer::MatRef<'_, f64>,
     f: faer::MatRef<'_, f64>,
-    r: &mut [f64],
-    s: &mut [f64],
+    [vsum, r, s]: [&mut [f64]; 3],
 ) -> f64 {
     let n = a.nrows();
     let sym = a.symbolic();
-    let vsum: Vec<f64> = (0..n).map(|j| v.row(j).iter().sum()).collect();
+    for (j, vj) in vsum.iter_mut().enumerate() {
+        *vj = v.row(j).iter().sum();
+    }
     r.iter_mut().for_each(|x| *x = 0.0);
     s.iter_mut().for_each(|x| *x = 0.0);
     for j in 0..n {
@@ -292,8 +302,7 @@ mod tests {
     /// back.
     #[test]
     fn lu_fallback_matches_the_ldlt_solve() {
-        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/config/models/lab-frame.toml");
-        let model = Model::from_toml(&std::fs::read_to_string(path).unwrap()).unwrap();
+        let model = crate::core::model::lab_frame();
         let theta: Vec<f64> = (0..model.n_params())
             .map(|l| 0.6 + 0.1 * l as f64)
             .collect();
@@ -320,9 +329,7 @@ mod tests {
                 .unwrap();
             assert_eq!(nelson.lu_fallbacks, 0);
             // The same right-hand sides (left in `f` by the call) through the LU.
-            let k = (0..n)
-                .max_by(|&a, &b| phi[a].abs().total_cmp(&phi[b].abs()))
-                .unwrap();
+            let k = pinned_component(&phi);
             let mut v = Mat::zeros(n, p);
             nelson
                 .solve_lu(&model, &theta, eig.lambda[mode], k, v.as_mut())

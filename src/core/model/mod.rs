@@ -16,7 +16,7 @@ pub mod spec;
 
 use faer::reborrow::ReborrowMut;
 use faer::{Mat, MatMut};
-pub use sparse::{Csc, Reordered, UnionPattern};
+pub use sparse::{Csc, Reordered, UnionPattern, ValueLayout};
 pub use spec::ModelSpec;
 
 /// What an updating parameter scales.
@@ -80,6 +80,14 @@ pub enum ModelError {
     Invalid { field: String, reason: String },
     #[error("DOF `{dof}` has no mass: M is singular (add a mass or fix the DOF)")]
     MasslessDof { dof: String },
+}
+
+/// The shipped lab-frame model, for unit tests.
+#[cfg(test)]
+pub(crate) fn lab_frame() -> Model {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/config/models/lab-frame.toml");
+    Model::from_toml(&std::fs::read_to_string(path).expect("shipped model exists"))
+        .expect("shipped model assembles")
 }
 
 /// An assembled FE model of class C (paper §2.1): `M` and `K(θ) = K0 + Σ θ_l K_l`.
@@ -223,37 +231,39 @@ impl Model {
         sigma: f64,
         out: &mut [f64],
     ) {
-        out.iter_mut().for_each(|v| *v = 0.0);
-        reordered.add_into(0, &self.k0, 1.0, out);
-        for (l, kl) in self.k_params.iter().enumerate() {
-            reordered.add_into(l + 1, kl, theta[l], out);
-        }
-        self.subtract_mass_reordered(reordered, sigma, out);
+        self.shifted_into(reordered, theta, sigma, out);
     }
 
     /// `out −= σ M` on the value array of [`Model::reordered`]'s lower triangle.
     pub fn subtract_mass_reordered(&self, reordered: &Reordered, sigma: f64, out: &mut [f64]) {
-        if sigma != 0.0 {
-            reordered.add_into(self.k_params.len() + 1, &self.m, -sigma, out);
-        }
+        self.subtract_mass_into(reordered, sigma, out);
     }
 
     /// `K(θ) − σ M` on the union pattern's value array, paper (1).
     pub fn shifted_stiffness_values(&self, theta: &[f64], sigma: f64, out: &mut [f64]) {
-        out.iter_mut().for_each(|v| *v = 0.0);
-        self.union.add_into(0, &self.k0, 1.0, out);
-        for (l, kl) in self.k_params.iter().enumerate() {
-            self.union.add_into(l + 1, kl, theta[l], out);
-        }
-        self.subtract_mass_values(sigma, out);
+        self.shifted_into(&self.union, theta, sigma, out);
     }
 
     /// `out −= σ M` on the union pattern's value array (after
     /// [`Model::shifted_stiffness_values`] with σ = 0).
     pub fn subtract_mass_values(&self, sigma: f64, out: &mut [f64]) {
+        self.subtract_mass_into(&self.union, sigma, out);
+    }
+
+    /// `K(θ) − σ M` on a value array laid out by `layout` (source matrices 0 = K0,
+    /// 1..=p = K_l, p + 1 = M, as in the union).
+    fn shifted_into(&self, layout: &impl ValueLayout, theta: &[f64], sigma: f64, out: &mut [f64]) {
+        out.iter_mut().for_each(|v| *v = 0.0);
+        layout.add_into(0, &self.k0, 1.0, out);
+        for (l, kl) in self.k_params.iter().enumerate() {
+            layout.add_into(l + 1, kl, theta[l], out);
+        }
+        self.subtract_mass_into(layout, sigma, out);
+    }
+
+    fn subtract_mass_into(&self, layout: &impl ValueLayout, sigma: f64, out: &mut [f64]) {
         if sigma != 0.0 {
-            let p = self.k_params.len();
-            self.union.add_into(p + 1, &self.m, -sigma, out);
+            layout.add_into(self.k_params.len() + 1, &self.m, -sigma, out);
         }
     }
 

@@ -248,13 +248,34 @@ impl UnionPattern {
             .collect();
         Self { pattern, maps }
     }
+}
 
-    /// `out += alpha · (matrix k)` on the union's value array.
-    pub fn add_into(&self, k: usize, mat: &Csc, alpha: f64, out: &mut [f64]) {
-        let vals = mat.val();
-        for (&pos, &v) in self.maps[k].iter().zip(vals) {
-            out[pos] += alpha * v;
+/// A value array for `K(θ) − σM` that the source matrices of a union pattern scatter into:
+/// the union's own, or its reordered lower triangle.
+pub trait ValueLayout {
+    /// Per source matrix, the position of each of its stored entries in the value array,
+    /// or [`MIRROR`] for an entry the array does not hold (its symmetric twin does).
+    fn maps(&self) -> &[Vec<usize>];
+
+    /// `out += alpha · (source matrix k)` on the value array.
+    fn add_into(&self, k: usize, mat: &Csc, alpha: f64, out: &mut [f64]) {
+        for (&pos, &v) in self.maps()[k].iter().zip(mat.val()) {
+            if pos != MIRROR {
+                out[pos] += alpha * v;
+            }
         }
+    }
+}
+
+impl ValueLayout for UnionPattern {
+    fn maps(&self) -> &[Vec<usize>] {
+        &self.maps
+    }
+}
+
+impl ValueLayout for Reordered {
+    fn maps(&self) -> &[Vec<usize>] {
+        &self.maps
     }
 }
 
@@ -282,8 +303,9 @@ pub struct Reordered {
     maps: Vec<Vec<usize>>,
 }
 
-/// Marks a source entry above the diagonal of the reordered matrix in [`Reordered`].
-const MIRROR: usize = usize::MAX;
+/// Marks a source entry a [`ValueLayout`] does not hold: in [`Reordered`], one above the
+/// diagonal.
+pub const MIRROR: usize = usize::MAX;
 
 impl std::fmt::Debug for Reordered {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -381,15 +403,6 @@ impl Reordered {
     /// Whether the pattern is empty (a model with no DOFs).
     pub fn is_empty(&self) -> bool {
         self.len() == 0
-    }
-
-    /// `out += alpha · (source matrix k)` on the lower triangle's value array.
-    pub fn add_into(&self, k: usize, mat: &Csc, alpha: f64, out: &mut [f64]) {
-        for (&pos, &v) in self.maps[k].iter().zip(mat.val()) {
-            if pos != MIRROR {
-                out[pos] += alpha * v;
-            }
-        }
     }
 
     /// `x_new[i] = x[fwd[i]]`: a vector into the reordered numbering.
