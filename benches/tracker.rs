@@ -88,7 +88,8 @@ fn bench_warm_update(c: &mut Criterion) {
         pct(0.99),
         times[times.len() - 1]
     );
-    let mut tracker = Tracker::restore(model.clone(), tracking_config(), &commissioned).unwrap();
+    let mut tracker =
+        Tracker::restore(model.clone(), tracking_config(), commissioned.clone()).unwrap();
     let mut next = 50;
     c.bench_function("lab_frame_tracker_warm_update_per_set", |b| {
         b.iter_custom(|iters| {
@@ -96,7 +97,8 @@ fn bench_warm_update(c: &mut Criterion) {
             for _ in 0..iters {
                 if next == sets.len() {
                     tracker =
-                        Tracker::restore(model.clone(), tracking_config(), &commissioned).unwrap();
+                        Tracker::restore(model.clone(), tracking_config(), commissioned.clone())
+                            .unwrap();
                     next = 50;
                 }
                 let start = Instant::now();

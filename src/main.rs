@@ -3,7 +3,7 @@
 use std::process::ExitCode;
 
 use boltwatch::commands::{
-    bayes, diagnose, export, modes, publish, replay, report, run, scenario, simulate, update,
+    diagnose, export, modes, publish, replay, report, run, scenario, simulate, sweep, update,
 };
 use clap::{Parser, Subcommand};
 
@@ -27,7 +27,7 @@ enum Command {
     /// Update the model's parameters to a modal set.
     Update(update::UpdateArgs),
     /// The σ_c study of the Bayesian MAP (paper Figs. 5, 7, 15, 18): JSON and an SVG plot.
-    SweepSigma(bayes::SweepArgs),
+    SweepSigma(sweep::SweepArgs),
     /// Find where the model and a modal set disagree, name the missing effect, add it.
     Diagnose(diagnose::DiagnoseArgs),
     /// Write a synthetic monitoring recording (MCAP): healthy, loosening, sudden or mass.
@@ -53,7 +53,7 @@ fn main() -> ExitCode {
         Command::Simulate(a) => simulate::run(a),
         Command::Modes(a) => modes::run(a),
         Command::Update(a) => update::run(a),
-        Command::SweepSigma(a) => bayes::run_sweep(a),
+        Command::SweepSigma(a) => sweep::run_sweep(a),
         Command::Diagnose(a) => diagnose::run(a),
         Command::Scenario(a) => scenario::run(a),
         Command::Replay(a) => replay::run(a),

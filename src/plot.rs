@@ -1,8 +1,23 @@
-//! Minimal SVG line charts: panels of series on linear or log axes, with ticks, labels,
-//! legends and vertical markers. Self-contained (no font metrics needed: SVG text is laid
-//! out by the viewer).
+//! Line charts drawn with [`plotters`]: panels of series on linear or log axes, with ticks,
+//! labels, legends, vertical and horizontal reference lines and shaded bands, laid out in a
+//! grid and written as SVG ([`figure_svg`]) or PNG ([`figure_png`]).
+//!
+//! Text is measured (and in PNGs drawn) with DejaVu Sans, bundled by the `dejavu` crate and
+//! registered with plotters as `sans-serif`, so no system font is needed. SVG text still names
+//! `sans-serif`: a viewer lays it out with its own font.
 
-use std::fmt::Write;
+use std::ops::Range;
+use std::path::Path;
+use std::sync::Once;
+
+use anyhow::Context;
+use plotters::coord::Shift;
+use plotters::coord::cartesian::Cartesian2d;
+use plotters::coord::ranged1d::{AsRangedCoord, ValueFormatter};
+use plotters::element::DashedPathElement;
+use plotters::prelude::*;
+use plotters::style::register_font;
+use plotters::style::text_anchor::{HPos, Pos, VPos};
 
 /// Axis scale.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -21,9 +36,9 @@ pub struct Series {
     pub markers: bool,
     /// Draw the connecting line.
     pub line: bool,
-    /// Colour (default: the palette's, by position).
+    /// Colour as `#rrggbb` (default: the palette's, by position).
     pub color: Option<&'static str>,
-    /// Line width.
+    /// Line width in pixels (rounded to a whole pixel, at least 1).
     pub width: f64,
 }
 
@@ -110,326 +125,350 @@ impl Panel {
     }
 }
 
-const PALETTE: [&str; 10] = [
-    "#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf",
-    "#7f7f7f", "#bcbd22",
-];
-const W: f64 = 620.0;
-const H: f64 = 380.0;
-const LEFT: f64 = 80.0;
-const RIGHT: f64 = 150.0;
-const TOP: f64 = 36.0;
-const BOTTOM: f64 = 52.0;
-
-struct Axis {
-    scale: Scale,
-    lo: f64,
-    hi: f64,
-}
-
-impl Axis {
-    fn fit(values: impl Iterator<Item = f64>, scale: Scale) -> Self {
-        let ok = |v: &f64| v.is_finite() && (scale == Scale::Linear || *v > 0.0);
-        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-        for v in values.filter(ok) {
-            lo = lo.min(v);
-            hi = hi.max(v);
-        }
-        if !lo.is_finite() {
-            (lo, hi) = (1.0, 10.0);
-        }
-        match scale {
-            Scale::Log => {
-                if hi <= lo * 1.000001 {
-                    (lo, hi) = (lo / 2.0, hi * 2.0);
-                }
-                Self {
-                    scale,
-                    lo: 10f64.powf(lo.log10().floor()),
-                    hi: 10f64.powf(hi.log10().ceil()),
-                }
-            }
-            Scale::Linear => {
-                if hi - lo <= 1e-12 * hi.abs().max(1e-300) {
-                    let d = if lo == 0.0 { 1.0 } else { 0.1 * lo.abs() };
-                    (lo, hi) = (lo - d, hi + d);
-                }
-                let pad = 0.05 * (hi - lo);
-                Self {
-                    scale,
-                    lo: lo - pad,
-                    hi: hi + pad,
-                }
-            }
-        }
-    }
-
-    /// Position of `v` in [0, 1].
-    fn frac(&self, v: f64) -> f64 {
-        match self.scale {
-            Scale::Linear => (v - self.lo) / (self.hi - self.lo),
-            Scale::Log => (v.log10() - self.lo.log10()) / (self.hi.log10() - self.lo.log10()),
-        }
-    }
-
-    fn valid(&self, v: f64) -> bool {
-        v.is_finite() && (self.scale == Scale::Linear || v > 0.0)
-    }
-
-    fn ticks(&self) -> Vec<f64> {
-        match self.scale {
-            Scale::Log => {
-                let (a, b) = (
-                    self.lo.log10().round() as i32,
-                    self.hi.log10().round() as i32,
-                );
-                let step = ((b - a) as f64 / 8.0).ceil().max(1.0) as i32;
-                (a..=b)
-                    .step_by(step as usize)
-                    .map(|k| 10f64.powi(k))
-                    .collect()
-            }
-            Scale::Linear => {
-                let raw = (self.hi - self.lo) / 6.0;
-                let mag = 10f64.powf(raw.log10().floor());
-                let step = [1.0, 2.0, 5.0, 10.0]
-                    .iter()
-                    .map(|m| m * mag)
-                    .find(|s| *s >= raw)
-                    .unwrap_or(10.0 * mag);
-                let mut t = (self.lo / step).ceil() * step;
-                let mut out = Vec::new();
-                while t <= self.hi + 1e-9 * step {
-                    out.push(if t.abs() < 1e-12 * step { 0.0 } else { t });
-                    t += step;
-                }
-                out
-            }
-        }
-    }
-}
-
-fn fmt_tick(v: f64, scale: Scale) -> String {
-    match scale {
-        Scale::Log => format!("1e{}", v.log10().round() as i32),
-        Scale::Linear => {
-            let a = v.abs();
-            if a == 0.0 {
-                "0".into()
-            } else if !(1e-3..1e5).contains(&a) {
-                format!("{v:.1e}")
-            } else {
-                let s = format!("{v:.4}");
-                s.trim_end_matches('0').trim_end_matches('.').to_string()
-            }
-        }
-    }
-}
-
-fn esc(s: &str) -> String {
-    s.replace('&', "&amp;")
-        .replace('<', "&lt;")
-        .replace('>', "&gt;")
-}
-
-fn panel_svg(out: &mut String, p: &Panel, ox: f64, oy: f64) {
-    let xa = Axis::fit(
-        p.series
-            .iter()
-            .flat_map(|s| s.x.iter().copied())
-            .chain(p.vlines.iter().map(|v| v.0)),
-        p.x_scale,
-    );
-    let ya = Axis::fit(
-        p.series
-            .iter()
-            .flat_map(|s| s.y.iter().copied())
-            .chain(p.hlines.iter().map(|v| v.0))
-            .chain(
-                p.bands
-                    .iter()
-                    .flat_map(|b| b.lower.iter().chain(&b.upper).copied()),
-            ),
-        p.y_scale,
-    );
-    let (pw, ph) = (W - LEFT - RIGHT, H - TOP - BOTTOM);
-    let px = |v: f64| ox + LEFT + pw * xa.frac(v);
-    let py = |v: f64| oy + TOP + ph * (1.0 - ya.frac(v));
-    let _ = writeln!(
-        out,
-        r##"<rect x="{:.1}" y="{:.1}" width="{pw:.1}" height="{ph:.1}" fill="none" stroke="#333"/>"##,
-        ox + LEFT,
-        oy + TOP
-    );
-    let _ = writeln!(
-        out,
-        r#"<text x="{:.1}" y="{:.1}" font-size="14" text-anchor="middle" font-weight="bold">{}</text>"#,
-        ox + LEFT + pw / 2.0,
-        oy + 22.0,
-        esc(&p.title)
-    );
-    for t in xa.ticks() {
-        let x = px(t);
-        if !(ox + LEFT - 0.5..=ox + LEFT + pw + 0.5).contains(&x) {
-            continue;
-        }
-        let _ = writeln!(
-            out,
-            r##"<line x1="{x:.1}" y1="{:.1}" x2="{x:.1}" y2="{:.1}" stroke="#ddd"/><text x="{x:.1}" y="{:.1}" font-size="11" text-anchor="middle">{}</text>"##,
-            oy + TOP,
-            oy + TOP + ph,
-            oy + TOP + ph + 15.0,
-            fmt_tick(t, xa.scale)
-        );
-    }
-    for t in ya.ticks() {
-        let y = py(t);
-        if !(oy + TOP - 0.5..=oy + TOP + ph + 0.5).contains(&y) {
-            continue;
-        }
-        let _ = writeln!(
-            out,
-            r##"<line x1="{:.1}" y1="{y:.1}" x2="{:.1}" y2="{y:.1}" stroke="#ddd"/><text x="{:.1}" y="{:.1}" font-size="11" text-anchor="end">{}</text>"##,
-            ox + LEFT,
-            ox + LEFT + pw,
-            ox + LEFT - 5.0,
-            y + 4.0,
-            fmt_tick(t, ya.scale)
-        );
-    }
-    let _ = writeln!(
-        out,
-        r#"<text x="{:.1}" y="{:.1}" font-size="12" text-anchor="middle">{}</text>"#,
-        ox + LEFT + pw / 2.0,
-        oy + H - 12.0,
-        esc(&p.x_label)
-    );
-    let _ = writeln!(
-        out,
-        r#"<text x="{:.1}" y="{:.1}" font-size="12" text-anchor="middle" transform="rotate(-90 {:.1} {:.1})">{}</text>"#,
-        ox + 16.0,
-        oy + TOP + ph / 2.0,
-        ox + 16.0,
-        oy + TOP + ph / 2.0,
-        esc(&p.y_label)
-    );
-    for (v, label) in &p.vlines {
-        if xa.valid(*v) {
-            let x = px(*v);
-            let _ = writeln!(
-                out,
-                r##"<line x1="{x:.1}" y1="{:.1}" x2="{x:.1}" y2="{:.1}" stroke="#000" stroke-dasharray="5,4"/><text x="{:.1}" y="{:.1}" font-size="11">{}</text>"##,
-                oy + TOP,
-                oy + TOP + ph,
-                x + 3.0,
-                oy + TOP + 12.0,
-                esc(label)
-            );
-        }
-    }
-    for (v, label) in &p.hlines {
-        if ya.valid(*v) {
-            let y = py(*v);
-            let _ = writeln!(
-                out,
-                r##"<line x1="{:.1}" y1="{y:.1}" x2="{:.1}" y2="{y:.1}" stroke="#555" stroke-dasharray="2,3"/><text x="{:.1}" y="{:.1}" font-size="11">{}</text>"##,
-                ox + LEFT,
-                ox + LEFT + pw,
-                ox + LEFT + 4.0,
-                y - 3.0,
-                esc(label)
-            );
-        }
-    }
-    for (k, b) in p.bands.iter().enumerate() {
-        let color = PALETTE[k % PALETTE.len()];
-        let pts: Vec<(f64, f64, f64)> =
-            b.x.iter()
-                .zip(b.lower.iter().zip(&b.upper))
-                .filter(|(x, (lo, hi))| xa.valid(**x) && ya.valid(**lo) && ya.valid(**hi))
-                .map(|(x, (lo, hi))| (px(*x), py(*lo), py(*hi)))
-                .collect();
-        if pts.len() > 1 {
-            let upper = pts.iter().map(|(x, _, hi)| format!("{x:.1},{hi:.1}"));
-            let lower = pts.iter().rev().map(|(x, lo, _)| format!("{x:.1},{lo:.1}"));
-            let d: Vec<String> = upper.chain(lower).collect();
-            let _ = writeln!(
-                out,
-                r#"<polygon points="{}" fill="{color}" fill-opacity="0.3" stroke="none"><title>{}</title></polygon>"#,
-                d.join(" "),
-                esc(&b.label)
-            );
-        }
-    }
-    let mut legend = 0usize;
-    for (k, s) in p.series.iter().enumerate() {
-        let color = s.color.unwrap_or(PALETTE[k % PALETTE.len()]);
-        let dash = if k >= PALETTE.len() {
-            r#" stroke-dasharray="6,3""#
-        } else {
-            ""
-        };
-        let pts: Vec<(f64, f64)> =
-            s.x.iter()
-                .zip(&s.y)
-                .filter(|(x, y)| xa.valid(**x) && ya.valid(**y))
-                .map(|(x, y)| (px(*x), py(*y)))
-                .collect();
-        if s.line && pts.len() > 1 {
-            let d: Vec<String> = pts.iter().map(|(x, y)| format!("{x:.1},{y:.1}")).collect();
-            let _ = writeln!(
-                out,
-                r#"<polyline points="{}" fill="none" stroke="{color}" stroke-width="{}"{dash}/>"#,
-                d.join(" "),
-                s.width
-            );
-        }
-        if s.markers {
-            for (x, y) in &pts {
-                let _ = writeln!(
-                    out,
-                    r#"<circle cx="{x:.1}" cy="{y:.1}" r="{}" fill="{color}"/>"#,
-                    if s.line { 2.4 } else { 4.0 }
-                );
-            }
-        }
-        if s.label.is_empty() {
-            continue;
-        }
-        let ly = oy + TOP + 8.0 + 15.0 * legend as f64;
-        legend += 1;
-        let lx = ox + LEFT + pw + 10.0;
-        let _ = writeln!(
-            out,
-            r#"<line x1="{lx:.1}" y1="{ly:.1}" x2="{:.1}" y2="{ly:.1}" stroke="{color}" stroke-width="2"{dash}/><text x="{:.1}" y="{:.1}" font-size="11">{}</text>"#,
-            lx + 18.0,
-            lx + 22.0,
-            ly + 4.0,
-            esc(&s.label)
-        );
-    }
-}
-
 /// An SVG document with `panels` laid out in `columns` columns.
 pub fn figure_svg(panels: &[Panel], columns: usize) -> String {
-    let columns = columns.max(1);
-    let rows = panels.len().div_ceil(columns);
-    let (w, h) = (W * columns as f64, H * rows.max(1) as f64);
-    let mut out = String::new();
-    let _ = writeln!(
-        out,
-        r#"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" viewBox="0 0 {w} {h}" font-family="sans-serif">"#
-    );
-    let _ = writeln!(out, r#"<rect width="{w}" height="{h}" fill="white"/>"#);
-    for (i, p) in panels.iter().enumerate() {
-        panel_svg(
-            &mut out,
-            p,
-            W * (i % columns) as f64,
-            H * (i / columns) as f64,
-        );
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, figure_size(panels, columns));
+        draw_figure(&root.into_drawing_area(), panels, columns)
+            .expect("drawing into an in-memory SVG with the bundled font does not fail");
     }
-    out.push_str("</svg>\n");
+    inline_text(&svg)
+}
+
+/// A PNG image of `panels` laid out in `columns` columns, written to `path` (which must end
+/// in `.png`: the encoder goes by the extension).
+pub fn figure_png(panels: &[Panel], columns: usize, path: &Path) -> anyhow::Result<()> {
+    let root = BitMapBackend::new(path, figure_size(panels, columns));
+    draw_figure(&root.into_drawing_area(), panels, columns)
+        .with_context(|| format!("cannot write {}", path.display()))
+}
+
+const PALETTE: [RGBColor; 10] = [
+    RGBColor(0x1f, 0x77, 0xb4),
+    RGBColor(0xd6, 0x27, 0x28),
+    RGBColor(0x2c, 0xa0, 0x2c),
+    RGBColor(0xff, 0x7f, 0x0e),
+    RGBColor(0x94, 0x67, 0xbd),
+    RGBColor(0x8c, 0x56, 0x4b),
+    RGBColor(0xe3, 0x77, 0xc2),
+    RGBColor(0x17, 0xbe, 0xcf),
+    RGBColor(0x7f, 0x7f, 0x7f),
+    RGBColor(0xbc, 0xbd, 0x22),
+];
+const GRID: RGBColor = RGBColor(0xdd, 0xdd, 0xdd);
+const MINOR_GRID: RGBColor = RGBColor(0xee, 0xee, 0xee);
+const HLINE: RGBColor = RGBColor(0x55, 0x55, 0x55);
+/// Size of one panel in pixels, and the room beside its plot: tick labels and axis titles on
+/// the left and bottom, the legend on the right.
+const W: u32 = 620;
+const H: u32 = 380;
+const LEFT: u32 = 72;
+const BOTTOM: u32 = 44;
+const RIGHT: u32 = 150;
+const FONT: &str = "sans-serif";
+/// Font sizes in plotters' units, 1.24 × the CSS pixels they come out as in SVG: 11, 12, 14.
+const SMALL: u32 = 14;
+const NORMAL: u32 = 15;
+const TITLE: u32 = 17;
+
+fn figure_size(panels: &[Panel], columns: usize) -> (u32, u32) {
+    let columns = columns.max(1);
+    let rows = panels.len().div_ceil(columns).max(1);
+    (W * columns as u32, H * rows as u32)
+}
+
+fn draw_figure<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    panels: &[Panel],
+    columns: usize,
+) -> DrawResult<(), DB> {
+    register_fonts();
+    root.fill(&WHITE)?;
+    let columns = columns.max(1);
+    let rows = panels.len().div_ceil(columns).max(1);
+    for (area, panel) in root.split_evenly((rows, columns)).iter().zip(panels) {
+        let x = fit(panel_xs(panel), panel.x_scale);
+        let y = fit(panel_ys(panel), panel.y_scale);
+        match (panel.x_scale, panel.y_scale) {
+            (Scale::Linear, Scale::Linear) => draw_panel(area, panel, x, y),
+            (Scale::Linear, Scale::Log) => draw_panel(area, panel, x, y.log_scale()),
+            (Scale::Log, Scale::Linear) => draw_panel(area, panel, x.log_scale(), y),
+            (Scale::Log, Scale::Log) => draw_panel(area, panel, x.log_scale(), y.log_scale()),
+        }?;
+    }
+    root.present()
+}
+
+/// Registers DejaVu Sans as plotters' `sans-serif` (once per process).
+fn register_fonts() {
+    static FONTS: Once = Once::new();
+    FONTS.call_once(|| {
+        for (style, bytes) in [
+            (FontStyle::Normal, dejavu::sans::regular()),
+            (FontStyle::Bold, dejavu::sans::bold()),
+        ] {
+            assert!(
+                register_font(FONT, style, bytes).is_ok(),
+                "the bundled DejaVu Sans does not parse"
+            );
+        }
+    });
+}
+
+fn panel_xs(p: &Panel) -> impl Iterator<Item = f64> + '_ {
+    let series = p.series.iter().flat_map(|s| &s.x);
+    let bands = p.bands.iter().flat_map(|b| &b.x);
+    series
+        .chain(bands)
+        .copied()
+        .chain(p.vlines.iter().map(|v| v.0))
+}
+
+fn panel_ys(p: &Panel) -> impl Iterator<Item = f64> + '_ {
+    let series = p.series.iter().flat_map(|s| &s.y);
+    let bands = p.bands.iter().flat_map(|b| b.lower.iter().chain(&b.upper));
+    series
+        .chain(bands)
+        .copied()
+        .chain(p.hlines.iter().map(|h| h.0))
+}
+
+/// Whether `v` can be shown on an axis of `scale`.
+fn valid(v: f64, scale: Scale) -> bool {
+    v.is_finite() && (scale == Scale::Linear || v > 0.0)
+}
+
+/// The axis range that shows `values`: whole decades on a log axis, 5 % margins on a linear
+/// one, and a made-up width when all values are equal (or none can be shown).
+fn fit(values: impl Iterator<Item = f64>, scale: Scale) -> Range<f64> {
+    let (mut lo, mut hi) = values
+        .filter(|v| valid(*v, scale))
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+            (lo.min(v), hi.max(v))
+        });
+    if !lo.is_finite() {
+        (lo, hi) = (1.0, 10.0);
+    }
+    match scale {
+        Scale::Log => {
+            if hi <= lo * 1.000001 {
+                (lo, hi) = (lo / 2.0, hi * 2.0);
+            }
+            10f64.powf(lo.log10().floor())..10f64.powf(hi.log10().ceil())
+        }
+        Scale::Linear => {
+            if hi - lo <= 1e-12 * hi.abs().max(1e-300) {
+                let d = if lo == 0.0 { 1.0 } else { 0.1 * lo.abs() };
+                (lo, hi) = (lo - d, hi + d);
+            }
+            let pad = 0.05 * (hi - lo);
+            lo - pad..hi + pad
+        }
+    }
+}
+
+/// A tick label: decades only on a log axis (`1e3`; the grid lines between stay unlabelled),
+/// short decimals on a linear one.
+fn fmt_tick(v: f64, scale: Scale) -> String {
+    let a = v.abs();
+    match scale {
+        Scale::Log => {
+            let k = v.log10().round();
+            if (v / 10f64.powf(k) - 1.0).abs() < 1e-9 {
+                format!("1e{k}")
+            } else {
+                String::new()
+            }
+        }
+        Scale::Linear if a < 1e-12 => "0".into(),
+        Scale::Linear if !(1e-3..1e5).contains(&a) => format!("{v:.1e}"),
+        Scale::Linear => {
+            let s = format!("{v:.4}");
+            s.trim_end_matches('0').trim_end_matches('.').to_string()
+        }
+    }
+}
+
+/// `#rrggbb` as a colour (black if it is not of that form).
+fn rgb(hex: &str) -> RGBColor {
+    let digits = hex.strip_prefix('#').filter(|h| h.len() == 6);
+    let byte = |i: usize| u8::from_str_radix(digits?.get(i..i + 2)?, 16).ok();
+    match (byte(0), byte(2), byte(4)) {
+        (Some(r), Some(g), Some(b)) => RGBColor(r, g, b),
+        _ => BLACK,
+    }
+}
+
+type DrawResult<T, DB> = Result<T, DrawingAreaErrorKind<<DB as DrawingBackend>::ErrorType>>;
+type Chart<'a, DB, X, Y> = ChartContext<'a, DB, Cartesian2d<X, Y>>;
+
+fn draw_panel<DB, X, Y>(area: &DrawingArea<DB, Shift>, p: &Panel, x: X, y: Y) -> DrawResult<(), DB>
+where
+    DB: DrawingBackend,
+    X: AsRangedCoord<Value = f64>,
+    Y: AsRangedCoord<Value = f64>,
+    X::CoordDescType: ValueFormatter<f64>,
+    Y::CoordDescType: ValueFormatter<f64>,
+{
+    let mut chart = ChartBuilder::on(area)
+        .caption(&p.title, (FONT, TITLE, FontStyle::Bold))
+        .margin(6)
+        .margin_right(RIGHT)
+        .x_label_area_size(BOTTOM)
+        .y_label_area_size(LEFT)
+        .build_cartesian_2d(x, y)?;
+    let (xs, ys) = (p.x_scale, p.y_scale);
+    // Unlabelled grid lines at 2, 3, … 9 in each decade of a short log axis; none on a linear one.
+    let minor = |scale| if scale == Scale::Log { 10 } else { 0 };
+    chart
+        .configure_mesh()
+        .x_desc(&p.x_label)
+        .y_desc(&p.y_label)
+        .x_labels(7)
+        .y_labels(8)
+        .x_label_formatter(&|v| fmt_tick(*v, xs))
+        .y_label_formatter(&|v| fmt_tick(*v, ys))
+        .x_max_light_lines(minor(xs))
+        .y_max_light_lines(minor(ys))
+        .label_style((FONT, SMALL))
+        .axis_desc_style((FONT, NORMAL))
+        .bold_line_style(GRID)
+        .light_line_style(MINOR_GRID)
+        .draw()?;
+    draw_reference_lines(&mut chart, p)?;
+    let legend = draw_data(&mut chart, p)?;
+    draw_legend(area, chart.plotting_area().get_pixel_range(), &legend)
+}
+
+/// The panel's vertical and horizontal lines, dashed and labelled.
+fn draw_reference_lines<DB, X, Y>(chart: &mut Chart<DB, X, Y>, p: &Panel) -> DrawResult<(), DB>
+where
+    DB: DrawingBackend,
+    X: Ranged<ValueType = f64>,
+    Y: Ranged<ValueType = f64>,
+{
+    let (x_range, y_range) = (chart.x_range(), chart.y_range());
+    let text = TextStyle::from((FONT, SMALL).into_font());
+    for (v, label) in p.vlines.iter().filter(|(v, _)| valid(*v, p.x_scale)) {
+        let line = [(*v, y_range.start), (*v, y_range.end)];
+        chart.draw_series(DashedLineSeries::new(line, 5, 4, BLACK.into()))?;
+        let at = EmptyElement::at((*v, y_range.end));
+        chart.draw_series([at + Text::new(label.clone(), (3, 3), text.clone())])?;
+    }
+    for (v, label) in p.hlines.iter().filter(|(v, _)| valid(*v, p.y_scale)) {
+        let line = [(x_range.start, *v), (x_range.end, *v)];
+        chart.draw_series(DashedLineSeries::new(line, 2, 3, HLINE.into()))?;
+        let at = EmptyElement::at((x_range.start, *v));
+        chart.draw_series([at + Text::new(label.clone(), (4, -15), text.clone())])?;
+    }
+    Ok(())
+}
+
+/// The panel's bands, then its series over them, skipping points the axes cannot show;
+/// returns the legend's entries.
+fn draw_data<'p, DB, X, Y>(
+    chart: &mut Chart<DB, X, Y>,
+    p: &'p Panel,
+) -> DrawResult<Vec<(&'p str, Key)>, DB>
+where
+    DB: DrawingBackend,
+    X: Ranged<ValueType = f64>,
+    Y: Ranged<ValueType = f64>,
+{
+    let (xs, ys) = (p.x_scale, p.y_scale);
+    let mut legend = Vec::new();
+    for (k, b) in p.bands.iter().enumerate() {
+        let points: Vec<_> = (b.x.iter().zip(&b.lower).zip(&b.upper))
+            .map(|((&x, &lo), &hi)| (x, lo, hi))
+            .filter(|&(x, lo, hi)| valid(x, xs) && valid(lo, ys) && valid(hi, ys))
+            .collect();
+        if points.len() < 2 {
+            continue;
+        }
+        let upper = points.iter().map(|&(x, _, hi)| (x, hi));
+        let lower = points.iter().rev().map(|&(x, lo, _)| (x, lo));
+        let fill = PALETTE[k % PALETTE.len()].mix(0.3).filled();
+        chart.draw_series([Polygon::new(upper.chain(lower).collect::<Vec<_>>(), fill)])?;
+        legend.push((b.label.as_str(), Key::Swatch(fill)));
+    }
+    for (k, s) in p.series.iter().enumerate() {
+        let color = s.color.map_or(PALETTE[k % PALETTE.len()], rgb);
+        let style = color.stroke_width(s.width.round().max(1.0) as u32);
+        // Past the palette's colours, lines are told apart by a dash.
+        let dashed = k >= PALETTE.len();
+        let points: Vec<_> = (s.x.iter().zip(&s.y))
+            .map(|(&x, &y)| (x, y))
+            .filter(|&(x, y)| valid(x, xs) && valid(y, ys))
+            .collect();
+        if s.line && dashed {
+            chart.draw_series(DashedLineSeries::new(points.clone(), 6, 3, style))?;
+        } else if s.line {
+            chart.draw_series(LineSeries::new(points.clone(), style))?;
+        }
+        if s.markers {
+            let radius = if s.line { 2.4 } else { 4.0 };
+            let filled = color.filled();
+            chart.draw_series(points.iter().map(|&p| Circle::new(p, radius, filled)))?;
+        }
+        let key = if s.line {
+            Key::Line(style, dashed)
+        } else {
+            Key::Dot(color)
+        };
+        legend.push((s.label.as_str(), key));
+    }
+    Ok(legend)
+}
+
+/// The legend, right of the plot (`plot`, in pixels of the figure): there, rather than by
+/// `configure_series_labels`, which clamps what it draws into the plot.
+fn draw_legend<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    plot: (Range<i32>, Range<i32>),
+    legend: &[(&str, Key)],
+) -> DrawResult<(), DB> {
+    let (base_x, base_y) = area.get_base_pixel();
+    let (x, top) = (plot.0.end - base_x + 10, plot.1.start - base_y + 8);
+    let text = TextStyle::from((FONT, SMALL).into_font()).pos(Pos::new(HPos::Left, VPos::Center));
+    let labelled = legend.iter().filter(|(label, _)| !label.is_empty());
+    for (i, (label, key)) in labelled.enumerate() {
+        let y = top + 17 * i as i32;
+        let line = [(x, y), (x + 18, y)];
+        match *key {
+            Key::Line(style, false) => area.draw(&PathElement::new(line, style)),
+            Key::Line(style, true) => area.draw(&DashedPathElement::new(line, 6, 3, style)),
+            Key::Dot(color) => area.draw(&Circle::new((x + 9, y), 4, color.filled())),
+            Key::Swatch(fill) => area.draw(&Rectangle::new([(x, y - 5), (x + 18, y + 5)], fill)),
+        }?;
+        area.draw(&Text::new(*label, (x + 22, y), &text))?;
+    }
+    Ok(())
+}
+
+/// What a legend entry shows left of its label.
+#[derive(Clone, Copy)]
+enum Key {
+    /// A line's style, and whether it is dashed.
+    Line(ShapeStyle, bool),
+    /// A marker's colour.
+    Dot(RGBColor),
+    /// A band's fill.
+    Swatch(ShapeStyle),
+}
+
+/// plotters-svg writes each text as `<text …>`, the text, `</text>` on three lines; this puts
+/// them on one (`<text …>label</text>`), as the hand-written SVG had it.
+fn inline_text(svg: &str) -> String {
+    let mut out = String::with_capacity(svg.len());
+    let mut in_text = false;
+    for line in svg.lines() {
+        out.push_str(line);
+        in_text = (in_text || line.starts_with("<text")) && line != "</text>";
+        if !in_text {
+            out.push('\n');
+        }
+    }
     out
 }
 
@@ -438,31 +477,41 @@ mod tests {
     use super::*;
 
     #[test]
-    fn log_ticks_are_decades_inside_the_range() {
-        let a = Axis::fit([3.0, 4.0e4].into_iter(), Scale::Log);
-        assert_eq!((a.lo, a.hi), (1.0, 1e5));
-        assert_eq!(a.ticks(), vec![1.0, 10.0, 100.0, 1e3, 1e4, 1e5]);
-        assert!((a.frac(100.0) - 0.4).abs() < 1e-12);
+    fn log_axes_span_whole_decades_and_label_only_them() {
+        assert_eq!(fit([3.0, 4.0e4, -1.0].into_iter(), Scale::Log), 1.0..1e5);
+        assert_eq!(fmt_tick(1e-3, Scale::Log), "1e-3");
+        assert_eq!(fmt_tick(300.0, Scale::Log), "");
     }
 
     #[test]
-    fn linear_ticks_are_round_and_cover_the_data() {
-        let a = Axis::fit([0.27, 0.93].into_iter(), Scale::Linear);
-        let t = a.ticks();
-        assert!(t.first().unwrap() >= &a.lo && t.last().unwrap() <= &a.hi);
-        assert!(t.contains(&0.4) && t.contains(&0.8), "{t:?}");
+    fn linear_axes_pad_the_data_and_label_it_briefly() {
+        let r = fit([0.2, 1.2, f64::NAN].into_iter(), Scale::Linear);
+        assert!((r.start - 0.15).abs() < 1e-12 && (r.end - 1.25).abs() < 1e-12);
+        assert_eq!(fmt_tick(0.25, Scale::Linear), "0.25");
+        assert_eq!(fmt_tick(2.0e-5, Scale::Linear), "2.0e-5");
+        assert_eq!(rgb("#c0392b"), RGBColor(0xc0, 0x39, 0x2b));
     }
 
     #[test]
     fn svg_skips_points_a_log_axis_cannot_show() {
         let mut p = Panel::new("t", "x", "y", Scale::Log, Scale::Log);
-        p.series.push(Series::line(
-            "s",
-            vec![1.0, 10.0, 100.0],
-            vec![1.0, -1.0, f64::NAN],
-        ));
+        let (x, y) = (vec![1.0, 10.0, 100.0], vec![1.0, -1.0, f64::NAN]);
+        p.series.push(Series::line("s", x, y));
         let svg = figure_svg(&[p], 1);
         assert_eq!(svg.matches("<circle").count(), 1);
         assert!(svg.starts_with("<svg") && svg.ends_with("</svg>\n"));
+        assert!(svg.contains(">s</text>"), "the legend's label on one line");
+    }
+
+    #[test]
+    fn png_is_written() {
+        let mut p = Panel::new("t", "x", "θ", Scale::Linear, Scale::Linear);
+        p.series
+            .push(Series::points("s", vec![1.0, 2.0], vec![3.0, 4.0]));
+        let path = std::env::temp_dir().join(format!("plot-test-{}.png", std::process::id()));
+        figure_png(&[p.clone(), p], 2, &path).unwrap();
+        let png = std::fs::read(&path).unwrap();
+        std::fs::remove_file(&path).unwrap();
+        assert!(png.starts_with(b"\x89PNG"));
     }
 }

@@ -112,6 +112,18 @@ impl Settings {
             }
             b = b.add_source(config::File::from(f).format(config::FileFormat::Toml));
         }
+        let env: config::Map<String, String> = env.into_iter().collect();
+        // The base of the default state directory: the given environment first (tests), then
+        // the process's.
+        let var = |k: &str| {
+            env.get(k)
+                .cloned()
+                .or_else(|| std::env::var(k).ok())
+                .filter(|v| !v.is_empty())
+        };
+        let state_base = var("XDG_STATE_HOME")
+            .map(PathBuf::from)
+            .or_else(|| var("HOME").map(|h| Path::new(&h).join(".local/state")));
         let env: config::Map<String, String> = env
             .into_iter()
             .filter(|(k, _)| k.starts_with("BOLTWATCH__"))
@@ -129,10 +141,18 @@ impl Settings {
         let what = file.map_or("the default configuration".to_string(), |f| {
             format!("configuration {}", f.display())
         });
-        let s: Settings = b
+        let mut s: Settings = b
             .build()
             .and_then(|c| c.try_deserialize())
             .with_context(|| format!("bad {what}"))?;
+        if s.daemon.state_dir.as_os_str().is_empty()
+            && let Some(base) = state_base
+        {
+            // XDG base directories: state belongs in $XDG_STATE_HOME (default
+            // ~/.local/state), never in the working directory. With neither set it stays
+            // empty, and `run` says so.
+            s.daemon.state_dir = base.join("boltwatch");
+        }
         s.validate().with_context(|| format!("bad {what}"))?;
         Ok(s)
     }
@@ -262,5 +282,33 @@ mod tests {
             let msg = format!("{e:#}");
             assert!(msg.contains(key), "{pairs:?}: {msg}");
         }
+    }
+
+    /// The default state directory is under `$XDG_STATE_HOME`, else `~/.local/state`,
+    /// never the working directory; a configured one is kept.
+    #[test]
+    fn state_dir_defaults_to_xdg() {
+        let s = Settings::load_with_env(None, env(&[("XDG_STATE_HOME", "/xdg/state")])).unwrap();
+        assert_eq!(s.daemon.state_dir, Path::new("/xdg/state/boltwatch"));
+        let s = Settings::load_with_env(None, env(&[("XDG_STATE_HOME", ""), ("HOME", "/home/u")]))
+            .unwrap();
+        // The process's own XDG_STATE_HOME, if it has one, comes before HOME.
+        let want = std::env::var("XDG_STATE_HOME")
+            .ok()
+            .filter(|v| !v.is_empty())
+            .map_or(
+                Path::new("/home/u/.local/state/boltwatch").to_path_buf(),
+                |x| Path::new(&x).join("boltwatch"),
+            );
+        assert_eq!(s.daemon.state_dir, want);
+        let s = Settings::load_with_env(
+            None,
+            env(&[
+                ("XDG_STATE_HOME", "/xdg/state"),
+                ("BOLTWATCH__DAEMON__STATE_DIR", "/var/lib/bw"),
+            ]),
+        )
+        .unwrap();
+        assert_eq!(s.daemon.state_dir, Path::new("/var/lib/bw"));
     }
 }

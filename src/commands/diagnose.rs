@@ -8,16 +8,13 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
-use serde_json::{Value, json};
 
 use super::{load_spec, write_json};
-use crate::core::diagnosis::{Diagnosis, DiagnosisOptions, Localization, diagnose};
+use crate::contract::diagnosis::DiagnosisDoc;
+use crate::core::diagnosis::{Diagnosis, DiagnosisOptions, diagnose};
 use crate::core::model::Model;
 use crate::core::model::spec::ModelSpec;
 use crate::plot::{Panel, Scale, Series, figure_svg};
-
-/// Schema of `diagnosis.json`.
-pub const DIAGNOSIS_SCHEMA: &str = "boltwatch.diagnosis.v1";
 
 #[derive(Debug, clap::Args)]
 pub struct DiagnoseArgs {
@@ -54,8 +51,8 @@ pub fn run(args: &DiagnoseArgs) -> Result<()> {
     let spec = load_spec(&args.model)?;
     let model =
         Model::from_spec(&spec).with_context(|| format!("model file {}", args.model.display()))?;
-    let set = super::update::load_set(&model, &args.data)?;
-    let data = super::update::measured_data(&set, &model, args.shape_weight);
+    let set = super::inputs::load_set(&model, &args.data)?;
+    let data = super::inputs::measured_data(&set, &model, args.shape_weight);
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let pb = ProgressBar::new(0);
@@ -88,7 +85,7 @@ pub fn run(args: &DiagnoseArgs) -> Result<()> {
     )?;
     pb.finish_and_clear();
     let seconds = started.elapsed().as_secs_f64();
-    let out = to_json(&d, &model, seconds);
+    let out = DiagnosisDoc::new(&d, &model.name, seconds);
     write_json(&args.out.join("diagnosis.json"), &out)?;
     std::fs::write(args.out.join("modes.svg"), modes_svg(&d))?;
     std::fs::write(args.out.join("structure.svg"), structure_svg(&spec, &d))?;
@@ -98,76 +95,6 @@ pub fn run(args: &DiagnoseArgs) -> Result<()> {
         args.out.display()
     );
     Ok(())
-}
-
-fn finite(v: f64) -> Value {
-    if v.is_finite() { json!(v) } else { Value::Null }
-}
-
-fn localization_json(l: &Localization) -> Value {
-    json!({
-        "epsilon": l.epsilon,
-        "theta": l.theta,
-        "modes": l.modes.iter().map(|m| json!({
-            "measured_hz": m.measured_hz, "model_hz": m.model_hz,
-            "error_sigma": m.error_sigma, "mac": finite(m.mac), "paired_with": m.paired_with,
-        })).collect::<Vec<_>>(),
-        "channels": l.channels.iter().map(|(n, r, k)| json!({
-            "channel": n, "shape_residual": r, "entries": k,
-        })).collect::<Vec<_>>(),
-    })
-}
-
-/// The `boltwatch.diagnosis.v1` document.
-pub fn to_json(d: &Diagnosis, model: &Model, seconds: f64) -> Value {
-    let first = d.rounds.first();
-    json!({
-        "schema": DIAGNOSIS_SCHEMA,
-        "structure": model.name,
-        "epsilon_before": d.before.epsilon,
-        "epsilon_after": d.after.epsilon,
-        "named": d.named.iter().map(|n| json!({
-            "effect": n.refit.effect,
-            "location": n.refit.location,
-            "value": n.refit.value,
-            "std": finite(n.refit.std),
-            "unit": n.refit.unit,
-            "epsilon_before": n.epsilon_before,
-            "epsilon_after": n.refit.epsilon,
-            "evidence": {
-                "likelihood_ratio": n.likelihood_ratio,
-                "threshold": n.threshold,
-                "log_bayes_factor": n.log_bayes_factor,
-            },
-            "indistinguishable_from": n.indistinguishable_from.iter().map(|o| json!({
-                "effect": o.effect, "location": o.location, "value": o.value,
-                "std": finite(o.std), "unit": o.unit, "epsilon": o.epsilon,
-            })).collect::<Vec<_>>(),
-        })).collect::<Vec<_>>(),
-        "candidates": first.map_or_else(Vec::new, |r| r.candidates.iter().take(30).map(|c| json!({
-            "effect": c.effect, "location": c.location, "score": c.score,
-        })).collect()),
-        "test": {
-            "method": "likelihood ratio, chi-square 1 dof, Bonferroni over candidates",
-            "alpha": d.alpha,
-            "candidates": d.n_candidates,
-            "threshold": d.threshold,
-        },
-        "rounds": d.rounds.iter().map(|r| json!({
-            "epsilon": r.epsilon,
-            "refits": r.refits.iter().map(|f| json!({
-                "effect": f.effect, "location": f.location, "value": f.value,
-                "std": finite(f.std), "unit": f.unit, "epsilon": f.epsilon,
-            })).collect::<Vec<_>>(),
-            "named": r.named.as_ref().map(|n| format!("{}@{}", n.refit.effect, n.refit.location)),
-            "withdrawn": r.withdrawn.iter().map(|w| json!({
-                "effect": w.effect, "location": w.location, "likelihood_ratio": w.likelihood_ratio,
-            })).collect::<Vec<_>>(),
-        })).collect::<Vec<_>>(),
-        "before": localization_json(&d.before),
-        "after": localization_json(&d.after),
-        "seconds": seconds,
-    })
 }
 
 fn table(d: &Diagnosis, seconds: f64) -> String {

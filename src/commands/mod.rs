@@ -3,13 +3,16 @@
 pub mod bayes;
 pub mod diagnose;
 pub mod export;
+pub mod inputs;
 pub mod modes;
+pub mod progress;
 pub mod publish;
 pub mod replay;
 pub mod report;
 pub mod run;
 pub mod scenario;
 pub mod simulate;
+pub mod sweep;
 pub mod update;
 
 use std::path::{Path, PathBuf};
@@ -17,6 +20,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 
 use crate::core::model::Model;
+pub use crate::io::model::{load_model, load_spec};
 
 /// `--model M.toml [--theta a,b,…]`: a model evaluated at θ (default: its nominal θ).
 #[derive(Debug, clap::Args)]
@@ -38,46 +42,9 @@ impl ModelAtTheta {
     }
 }
 
-/// Reads a model file without assembling it.
-pub fn load_spec(path: &Path) -> Result<crate::core::model::spec::ModelSpec> {
-    let text = std::fs::read_to_string(path)
-        .with_context(|| format!("cannot read model file {}", path.display()))?;
-    toml::from_str(&text).with_context(|| format!("model file {}", path.display()))
-}
-
-/// The model file of a watched structure, read once: its text form (the diagnosis
-/// enriches it) and its assembly, checked to describe that structure.
-pub fn load_structure(
-    s: &crate::settings::StructureSettings,
-) -> Result<(crate::core::model::spec::ModelSpec, Model)> {
-    let spec = load_spec(&s.model)?;
-    let model =
-        Model::from_spec(&spec).with_context(|| format!("model file {}", s.model.display()))?;
-    if model.name != s.name {
-        bail!(
-            "configuration key structures: structure `{}` has model file {} describing `{}`",
-            s.name,
-            s.model.display(),
-            model.name
-        );
-    }
-    Ok((spec, model))
-}
-
-/// Reads and assembles a model file.
-pub fn load_model(path: &Path) -> Result<Model> {
-    let text = std::fs::read_to_string(path)
-        .with_context(|| format!("cannot read model file {}", path.display()))?;
-    Model::from_toml(&text).with_context(|| format!("model file {}", path.display()))
-}
-
-/// Parses `--theta a,b,...` against the model's parameters (default: nominal θ).
-pub fn parse_theta(model: &Model, arg: Option<&str>, flag: &str) -> Result<Vec<f64>> {
-    let Some(s) = arg else {
-        return Ok(model.nominal_theta());
-    };
-    let values = s
-        .split(',')
+/// Parses a comma-separated list of finite positive numbers given to `flag`.
+pub fn parse_positive_list(s: &str, flag: &str) -> Result<Vec<f64>> {
+    s.split(',')
         .enumerate()
         .map(|(i, v)| {
             let x: f64 = v
@@ -89,7 +56,15 @@ pub fn parse_theta(model: &Model, arg: Option<&str>, flag: &str) -> Result<Vec<f
             }
             Ok(x)
         })
-        .collect::<Result<Vec<f64>>>()?;
+        .collect()
+}
+
+/// Parses `--theta a,b,...` against the model's parameters (default: nominal θ).
+pub fn parse_theta(model: &Model, arg: Option<&str>, flag: &str) -> Result<Vec<f64>> {
+    let Some(s) = arg else {
+        return Ok(model.nominal_theta());
+    };
+    let values = parse_positive_list(s, flag)?;
     if values.len() != model.n_params() {
         bail!(
             "{flag}: {} values given but model `{}` has {} parameters ({})",
@@ -107,9 +82,9 @@ pub fn parse_theta(model: &Model, arg: Option<&str>, flag: &str) -> Result<Vec<f
     Ok(values)
 }
 
-/// Writes pretty JSON to `path`.
-pub fn write_json(path: &Path, value: &serde_json::Value) -> Result<()> {
-    let text = serde_json::to_string_pretty(value)?;
+/// Writes pretty JSON to `path`, keys sorted as on the wire ([`crate::contract::wire`]).
+pub fn write_json<T: serde::Serialize>(path: &Path, value: &T) -> Result<()> {
+    let text = serde_json::to_string_pretty(&serde_json::to_value(value)?)?;
     std::fs::write(path, text + "\n").with_context(|| format!("cannot write {}", path.display()))
 }
 

@@ -6,7 +6,8 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use indicatif::{ProgressBar, ProgressStyle};
-use serde_json::Value;
+
+use crate::contract::{AlertDetail, rfc3339};
 
 use crate::io::replay::{ReplayOptions, ReplaySummary, replay, with_suffix};
 use crate::settings::Settings;
@@ -73,8 +74,8 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     Ok(())
 }
 
-fn num(v: &Value, digits: usize) -> String {
-    v.as_f64()
+fn num(v: Option<f64>, digits: usize) -> String {
+    v.filter(|x| x.is_finite())
         .map_or_else(|| "-".into(), |x| format!("{x:.digits$}"))
 }
 
@@ -106,7 +107,7 @@ pub fn summary_table(opts: &ReplayOptions, s: &ReplaySummary) -> String {
         let _ = writeln!(
             t,
             "  {name}: {} accepted, {} rejected, {} not converged, {} cold starts; {} cross-checks",
-            c["accepted"], c["rejected"], c["unconverged"], c["cold_starts"], s.crosschecks
+            c.accepted, c.rejected, c.unconverged, c.cold_starts, s.crosschecks
         );
     }
     for (topic, n) in &s.skipped_topics {
@@ -122,21 +123,19 @@ pub fn summary_table(opts: &ReplayOptions, s: &ReplaySummary) -> String {
             "time", "structure", "connection", "kind / level", "drop", "confidence"
         );
         for a in &s.alerts {
+            let drop = match a.detail {
+                AlertDetail::Loosening { drop, .. } => Some(drop),
+                AlertDetail::Inadequacy { .. } => None,
+            };
             let _ = writeln!(
                 t,
                 "  {:<24} {:<11} {:<16} {:<17} {:>7} {:>10}",
-                a["time"].as_str().unwrap_or_default(),
-                a["structure"].as_str().unwrap_or_default(),
-                a["connection"].as_str().unwrap_or("(model)"),
-                format!(
-                    "{} {}",
-                    a["kind"].as_str().unwrap_or_default(),
-                    a["level"].as_str().unwrap_or_default()
-                ),
-                a["drop"]
-                    .as_f64()
-                    .map_or_else(|| "-".into(), |d| format!("{:.1} %", 100.0 * d)),
-                num(&a["confidence"], 3),
+                rfc3339(a.time),
+                a.structure,
+                a.connection.as_deref().unwrap_or("(model)"),
+                format!("{} {}", a.kind.as_str(), a.level.as_str()),
+                drop.map_or_else(|| "-".into(), |d| format!("{:.1} %", 100.0 * d)),
+                num(a.confidence, 3),
             );
         }
     }
@@ -144,29 +143,28 @@ pub fn summary_table(opts: &ReplayOptions, s: &ReplaySummary) -> String {
         let _ = writeln!(
             t,
             "\nfinal stiffness of {name} at {} (ε = {}, bound {}):",
-            est["time"].as_str().unwrap_or_default(),
-            num(&est["epsilon"], 1),
-            num(&est["epsilon_bound"], 1)
+            rfc3339(est.time),
+            num(Some(est.epsilon), 1),
+            num(Some(est.epsilon_bound), 1)
         );
         let _ = writeln!(
             t,
             "  {:<10} {:>8} {:>8} {:>17} {:>8} {:>8} {:>12}",
             "parameter", "θ", "filtered", "95 % band", "baseline", "change", "k_R·θ N·m/rad"
         );
-        for p in est["parameters"].as_array().into_iter().flatten() {
-            let f = &p["filtered"];
+        for p in &est.parameters {
+            let f = &p.filtered;
             let _ = writeln!(
                 t,
                 "  {:<10} {:>8} {:>8} {:>17} {:>8} {:>8} {:>12}",
-                p["name"].as_str().unwrap_or_default(),
-                num(&p["theta"], 3),
-                num(&f["level"], 3),
-                format!("[{}, {}]", num(&f["lower95"], 3), num(&f["upper95"], 3)),
-                num(&p["baseline"], 3),
-                f["change"]
-                    .as_f64()
+                p.name,
+                num(Some(p.theta), 3),
+                num(Some(f.level), 3),
+                format!("[{}, {}]", num(Some(f.lower95), 3), num(Some(f.upper95), 3)),
+                num(p.baseline, 3),
+                f.change
                     .map_or_else(|| "-".into(), |c| format!("{:+.1} %", 100.0 * c)),
-                num(&p["stiffness"], 0),
+                num(p.stiffness, 0),
             );
         }
     }

@@ -3,7 +3,8 @@
 //! filtered level with the 95 % band, the baseline, alert markers),
 //! `DIR/<structure>-frequencies.svg` (measured frequencies, their change from the mean
 //! of the first 20 sets, model − measured) and `DIR/<structure>-epsilon.svg` (ε against its χ² bound,
-//! cold starts, model-inadequacy alerts). Time in days from the first estimate.
+//! cold starts, model-inadequacy alerts). Time in days from the first estimate. Each figure
+//! also as PNG (`….png`), for mail and documents.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -13,7 +14,7 @@ use chrono::{DateTime, Utc};
 use serde_json::Value;
 
 use crate::io::mcap::read_all;
-use crate::plot::{Band, Panel, Scale, Series, figure_svg};
+use crate::plot::{Band, Panel, Scale, Series, figure_png, figure_svg};
 
 #[derive(Debug, clap::Args)]
 pub struct ReportArgs {
@@ -75,18 +76,23 @@ pub fn run(args: &ReportArgs) -> Result<()> {
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     for (structure, o) in &by {
-        let files = report_structure(structure, o)?;
-        for (name, svg) in files {
-            let path = args.out.join(format!("{structure}-{name}.svg"));
-            std::fs::write(&path, svg)
-                .with_context(|| format!("cannot write {}", path.display()))?;
-            println!("{}", path.display());
+        for (name, panels, columns) in report_structure(structure, o)? {
+            let svg = args.out.join(format!("{structure}-{name}.svg"));
+            std::fs::write(&svg, figure_svg(&panels, columns))
+                .with_context(|| format!("cannot write {}", svg.display()))?;
+            let png = svg.with_extension("png");
+            figure_png(&panels, columns, &png)
+                .with_context(|| format!("cannot write {}", png.display()))?;
+            println!("{}\n{}", svg.display(), png.display());
         }
     }
     Ok(())
 }
 
-fn report_structure(structure: &str, o: &Outputs) -> Result<Vec<(&'static str, String)>> {
+/// A figure: its name, panels and columns.
+type Figure = (&'static str, Vec<Panel>, usize);
+
+fn report_structure(structure: &str, o: &Outputs) -> Result<Vec<Figure>> {
     let t0 = o
         .stiffness
         .iter()
@@ -170,7 +176,7 @@ fn report_structure(structure: &str, o: &Outputs) -> Result<Vec<(&'static str, S
         }
         panels.push(p);
     }
-    let stiffness = figure_svg(&panels, 3);
+    let stiffness = ("stiffness", panels, 3);
     // Frequencies.
     let n_modes = o
         .stiffness
@@ -234,7 +240,7 @@ fn report_structure(structure: &str, o: &Outputs) -> Result<Vec<(&'static str, S
             .with_width(0.6),
         );
     }
-    let frequencies = figure_svg(&[pf, pc, pe], 1);
+    let frequencies = ("frequencies", vec![pf, pc, pe], 1);
     // ε.
     let mut pe = Panel::new(
         &format!("{structure}: misfit ε (5) per set"),
@@ -283,10 +289,6 @@ fn report_structure(structure: &str, o: &Outputs) -> Result<Vec<(&'static str, S
             .with_color("#d62728"),
         );
     }
-    let epsilon = figure_svg(&[pe], 1);
-    Ok(vec![
-        ("stiffness", stiffness),
-        ("frequencies", frequencies),
-        ("epsilon", epsilon),
-    ])
+    let epsilon = ("epsilon", vec![pe], 1);
+    Ok(vec![stiffness, frequencies, epsilon])
 }

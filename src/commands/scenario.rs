@@ -8,11 +8,11 @@ use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
+use crate::contract::rfc3339;
 use crate::core::model::Model;
 use crate::core::model::spec::ModelSpec;
 use crate::io::mcap::{ChannelSpec, McapWriter, to_ns};
 use crate::io::schemas::TRUTH_SCHEMA;
-use crate::pipeline::rfc3339;
 use crate::scenario::{Event, NAMES, Scenario};
 
 #[derive(Debug, clap::Args)]

@@ -3,14 +3,20 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
-use serde_json::json;
 
-use super::{load_model, parse_theta, write_json};
-use crate::contract::modal_set::{ModalSet, ValidationContext, parse_modal_set};
+use super::bayes::BayesUpdateArgs;
+use super::inputs::{Inputs, load_inputs};
+use super::progress::{fmt_theta, iteration_progress, progress_line};
+use super::write_json;
+use crate::contract::modal_set::ModalSet;
+use crate::contract::stiffness::Method as WireMethod;
+use crate::contract::update::{Bound, ModeMatchingDoc, ModeResult, ParameterResult};
+use crate::contract::{ModeComparison, Schema, finite};
 use crate::core::model::Model;
+use crate::core::stats::chi2_bound;
 use crate::core::updating::{
-    AtBound, Evaluator, FinalStep, MeasuredData, ModeMatching, ModeMatchingOptions, StartPath,
-    StepControl, Weighting, chi2_bound,
+    AtBound, Evaluator, FinalStep, ModeMatching, ModeMatchingOptions, StartPath, StepControl,
+    Weighting,
 };
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -64,55 +70,8 @@ pub struct UpdateArgs {
     #[arg(short, long)]
     pub out: PathBuf,
     #[command(flatten)]
-    pub bayes: super::bayes::BayesUpdateArgs,
+    pub bayes: BayesUpdateArgs,
 }
-
-/// A model, a validated modal set on it, its numbers as [`MeasuredData`], and θ0.
-pub struct Inputs {
-    pub model: Model,
-    pub set: ModalSet,
-    pub data: MeasuredData,
-    pub theta0: Vec<f64>,
-}
-
-/// Loads and validates `--model`, `--data` and `--theta0` (shape weight for weighting (9)).
-pub fn load_inputs(
-    model: &std::path::Path,
-    data: &std::path::Path,
-    theta0: Option<&str>,
-    shape_weight: f64,
-) -> Result<Inputs> {
-    let model = load_model(model)?;
-    crate::core::numerics_for(&model);
-    let theta0 = parse_theta(&model, theta0, "--theta0")?;
-    let set = load_set(&model, data)?;
-    if !(shape_weight.is_finite() && shape_weight > 0.0) {
-        anyhow::bail!("--shape-weight = {shape_weight} must be a finite number > 0");
-    }
-    let data = measured_data(&set, &model, shape_weight);
-    Ok(Inputs {
-        model,
-        set,
-        data,
-        theta0,
-    })
-}
-
-/// Reads and validates a modal set against `model`.
-pub fn load_set(model: &Model, path: &std::path::Path) -> Result<ModalSet> {
-    let bytes =
-        std::fs::read(path).with_context(|| format!("cannot read modal set {}", path.display()))?;
-    let channels: Vec<String> = model.channels().iter().map(|c| c.name.clone()).collect();
-    let ctx = ValidationContext {
-        structures: &[model.name.as_str()],
-        model_channels: &channels,
-        last_time: None,
-        allow_equal_time: true,
-    };
-    parse_modal_set(&bytes, &ctx).with_context(|| format!("modal set {} rejected", path.display()))
-}
-
-pub use crate::pipeline::measured_data;
 
 pub fn run(args: &UpdateArgs) -> Result<()> {
     let inputs = load_inputs(
@@ -123,7 +82,13 @@ pub fn run(args: &UpdateArgs) -> Result<()> {
     )?;
     match args.method {
         Method::ModeMatching => run_mode_matching(args, &inputs),
-        Method::Bayesian => super::bayes::run_update(args, &inputs),
+        Method::Bayesian => super::bayes::run_update(
+            &args.bayes,
+            args.max_iter,
+            args.shape_weight,
+            &args.out,
+            &inputs,
+        ),
     }
 }
 
@@ -171,72 +136,51 @@ fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
         }
     };
     let std = res.std();
-    let last = &res.last;
-    let modes: Vec<_> = set
-        .modes
-        .iter()
-        .enumerate()
-        .map(|(m, mode)| {
-            json!({
-                "measured_hz": mode.frequency_hz,
-                "model_hz": last.model_hz(m),
-                "error": (last.model_hz(m) - mode.frequency_hz) / mode.frequency_hz,
-                "mac": if last.mac[m].is_nan() { serde_json::Value::Null } else { json!(last.mac[m]) },
-                "paired_with": last.pairing[m] + 1,
+    let out = ModeMatchingDoc {
+        schema: Schema::new(),
+        method: WireMethod::ModeMatching,
+        structure: set.structure.clone(),
+        time: set
+            .time
+            .to_rfc3339_opts(chrono::SecondsFormat::AutoSi, true),
+        converged: res.converged(),
+        termination: (&res.termination).into(),
+        iterations: res.iterations,
+        evaluations: res.evaluations,
+        start: start.clone(),
+        chi2_bound: chi2_bound(data.n_data(), model.n_params()),
+        epsilon: res.epsilon(),
+        n_data: data.n_data(),
+        weighting: match data.weighting {
+            Weighting::Covariance => "covariance (8)",
+            Weighting::Heuristic { .. } => "heuristic (9)",
+        }
+        .into(),
+        parameters: model
+            .parameters()
+            .iter()
+            .enumerate()
+            .map(|(l, p)| ParameterResult {
+                name: p.name.clone(),
+                theta: res.theta[l],
+                std: finite(std[l]),
+                at_bound: res.at_bound[l].map(|b| match b {
+                    AtBound::Upper => Bound::Upper,
+                    AtBound::Lower => Bound::Lower,
+                }),
             })
-        })
-        .collect();
-    let out = json!({
-        "schema": "boltwatch.update.v1",
-        "method": "mode-matching",
-        "structure": set.structure,
-        "time": set.time.to_rfc3339_opts(chrono::SecondsFormat::AutoSi, true),
-        "converged": res.converged(),
-        "termination": format!("{:?}", res.termination),
-        "iterations": res.iterations,
-        "evaluations": res.evaluations,
-        "start": start,
-        "chi2_bound": chi2_bound(data.n_data(), model.n_params()),
-        "epsilon": res.epsilon(),
-        "n_data": data.n_data(),
-        "weighting": match data.weighting { Weighting::Covariance => "covariance (8)", Weighting::Heuristic { .. } => "heuristic (9)" },
-        "parameters": model.parameters().iter().enumerate().map(|(l, p)| json!({
-            "name": p.name, "theta": res.theta[l],
-            "std": if std[l].is_nan() { serde_json::Value::Null } else { json!(std[l]) },
-            "at_bound": match res.at_bound[l] {
-                Some(AtBound::Upper) => json!("upper"),
-                Some(AtBound::Lower) => json!("lower"),
-                None => serde_json::Value::Null,
-            },
-        })).collect::<Vec<_>>(),
-        "modes": modes,
-    });
+            .collect(),
+        modes: set
+            .modes
+            .iter()
+            .enumerate()
+            .map(|(m, mode)| ModeResult::new(ModeComparison::of(&res.last, m, mode.frequency_hz)))
+            .collect(),
+    };
     write_json(&args.out, &out)?;
     print_table(model, set, &res, &std);
     println!("found from: {start}");
     Ok(())
-}
-
-/// A spinner on stderr for an iterative update, its message replaced at every iterate
-/// (hidden when stderr is not a terminal).
-pub fn iteration_progress(what: &str) -> indicatif::ProgressBar {
-    let pb = indicatif::ProgressBar::new_spinner();
-    pb.set_style(
-        indicatif::ProgressStyle::with_template("{spinner} {prefix} [{elapsed}] {msg}")
-            .expect("valid template"),
-    );
-    pb.set_prefix(what.to_string());
-    pb.enable_steady_tick(std::time::Duration::from_millis(120));
-    pb
-}
-
-/// Shows an iteration's line on `bar`; without a terminal (a log file, a service) the bar
-/// is hidden, so the line goes to stderr instead and a long run can still be followed.
-pub fn progress_line(bar: &indicatif::ProgressBar, line: String) {
-    if bar.is_hidden() {
-        eprintln!("{line}");
-    }
-    bar.set_message(line);
 }
 
 /// `--bounds`: `lo,hi` or `none`.
@@ -255,12 +199,6 @@ fn parse_bounds(s: &str) -> Result<Option<(f64, f64)>> {
         [lo, hi] if lo > 0.0 && lo < 1.0 && hi > 1.0 && hi.is_finite() => Ok(Some((lo, hi))),
         _ => anyhow::bail!("--bounds `{s}`: need two factors 0 < lo < 1 < hi, or `none`"),
     }
-}
-
-/// θ as `(0.3600, 1.0000, …)`.
-pub fn fmt_theta(theta: &[f64]) -> String {
-    let v: Vec<String> = theta.iter().map(|t| format!("{t:.4}")).collect();
-    format!("({})", v.join(", "))
 }
 
 fn print_table(

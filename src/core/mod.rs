@@ -6,6 +6,7 @@ pub mod diagnosis;
 pub mod modal;
 pub mod model;
 pub mod simulate;
+pub mod stats;
 pub mod updating;
 
 /// Runs faer's dense kernels on the calling thread. The matrices of a model update are small

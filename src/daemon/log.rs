@@ -13,8 +13,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 
+use crate::contract::Output;
 use crate::io::mcap::{ChannelSpec, McapWriter, read_tolerant};
-use crate::io::replay::{OUTPUT_SUFFIXES, with_suffix};
+use crate::io::replay::with_suffix;
 
 /// Messages between two size checks of the open file.
 const SIZE_CHECK_EVERY: u64 = 64;
@@ -55,7 +56,7 @@ impl RollingLog {
         std::fs::create_dir_all(dir)
             .with_context(|| format!("cannot create log directory {}", dir.display()))?;
         let mut channels = vec![ChannelSpec::for_structure(structure, "modal")?];
-        for suffix in OUTPUT_SUFFIXES {
+        for suffix in Output::TOPICS {
             channels.push(ChannelSpec::for_structure(structure, suffix)?);
         }
         let log = Self {

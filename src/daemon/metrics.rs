@@ -1,53 +1,62 @@
 //! What the daemon shares between its threads about each structure (counters, the latest
-//! state for `status` queries) and its Prometheus endpoint: the text exposition format
-//! (version 0.0.4) at `GET /metrics`, served by a minimal HTTP/1.1 responder on a loopback
-//! port (`[metrics] listen`).
+//! state for `status` queries) and its Prometheus endpoint: `GET /metrics` on
+//! `[metrics] listen`, served by axum. A `prometheus-client` collector reads the shared state
+//! at scrape time and encodes it in the Prometheus text format (version 0.0.4).
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use serde_json::{Value, json};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use axum::extract::State;
+use axum::http::{HeaderValue, StatusCode, header};
+use axum::response::Response;
+use prometheus_client::collector::Collector;
+use prometheus_client::encoding::{DescriptorEncoder, EncodeMetric, prometheus_text};
+use prometheus_client::metrics::MetricType;
+use prometheus_client::metrics::counter::ConstCounter;
+use prometheus_client::metrics::gauge::ConstGauge;
+use prometheus_client::registry::Registry;
+
+use crate::contract::status::{CrosscheckCounts, QueueStatus, SetCounts};
+use crate::contract::{self, Alert, AlertKind, Estimate, Output, Schema};
 
 /// Upper bounds (s) of the update-latency histogram buckets.
 pub const LATENCY_BUCKETS: [f64; 10] = [
     0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 1.0,
 ];
 
-/// A cumulative histogram with atomic counters.
-#[derive(Debug, Default)]
+/// The update-latency histogram. prometheus-client does not expose its histogram's count
+/// and sum, so the two the status reply needs are kept beside it.
+#[derive(Debug)]
 pub struct Histogram {
-    /// Count per bucket of [`LATENCY_BUCKETS`], then +Inf (not cumulative).
-    counts: [AtomicU64; LATENCY_BUCKETS.len() + 1],
+    buckets: prometheus_client::metrics::histogram::Histogram,
+    count: AtomicU64,
     sum_ns: AtomicU64,
+}
+
+impl Default for Histogram {
+    fn default() -> Self {
+        Self {
+            buckets: prometheus_client::metrics::histogram::Histogram::new(LATENCY_BUCKETS),
+            count: AtomicU64::new(0),
+            sum_ns: AtomicU64::new(0),
+        }
+    }
 }
 
 impl Histogram {
     pub fn observe(&self, d: Duration) {
-        let s = d.as_secs_f64();
-        let k = LATENCY_BUCKETS
-            .iter()
-            .position(|&b| s <= b)
-            .unwrap_or(LATENCY_BUCKETS.len());
-        self.counts[k].fetch_add(1, Ordering::Relaxed);
+        self.buckets.observe(d.as_secs_f64());
+        self.count.fetch_add(1, Ordering::Relaxed);
         self.sum_ns
             .fetch_add(d.as_nanos() as u64, Ordering::Relaxed);
     }
 
-    /// Cumulative counts per bucket (+Inf last), and the sum in seconds.
-    pub fn snapshot(&self) -> (Vec<u64>, f64) {
-        let mut acc = 0;
-        let cum = self
-            .counts
-            .iter()
-            .map(|c| {
-                acc += c.load(Ordering::Relaxed);
-                acc
-            })
-            .collect();
-        (cum, self.sum_ns.load(Ordering::Relaxed) as f64 * 1e-9)
+    /// Mean of the observations (ms), `None` before the first.
+    fn mean_ms(&self) -> Option<f64> {
+        let n = self.count.load(Ordering::Relaxed);
+        (n > 0).then(|| self.sum_ns.load(Ordering::Relaxed) as f64 * 1e-6 / n as f64)
     }
 }
 
@@ -59,18 +68,31 @@ pub struct Status {
     pub unconverged: u64,
     pub cold_starts: u64,
     pub last_set_time: Option<String>,
-    /// The last `boltwatch.stiffness.v1` published.
-    pub last_estimate: Option<Value>,
+    /// The last estimate published.
+    pub last_estimate: Option<Estimate>,
     /// The last alert per (kind, connection); a `cleared` one stays until replaced.
-    pub alerts: BTreeMap<String, Value>,
-    /// `(parameter, θ)` of the last estimate.
-    pub theta: Vec<(String, f64)>,
+    pub alerts: BTreeMap<(AlertKind, Option<String>), Alert>,
     pub crosschecks: u64,
     /// Cross-checks not started because the previous one was still running.
     pub crosschecks_skipped: u64,
     pub publish_errors: u64,
     pub log_file: Option<String>,
     pub last_checkpoint: Option<String>,
+}
+
+impl Status {
+    /// Notes an output that was published.
+    pub fn note(&mut self, output: &Output) {
+        match output {
+            Output::Estimate(e) => self.last_estimate = Some((**e).clone()),
+            Output::Alert(a) => {
+                self.alerts
+                    .insert((a.kind, a.connection.clone()), (**a).clone());
+            }
+            Output::Crosscheck(_) => self.crosschecks += 1,
+            Output::Rejected(_) => {}
+        }
+    }
 }
 
 /// One structure's shared counters and status.
@@ -110,213 +132,160 @@ impl Shared {
             .clone()
     }
 
-    /// The reply to a `boltwatch/<structure>/status` query (`boltwatch.status.v1`).
-    pub fn status_json(&self) -> Value {
+    /// Changes the status under its lock.
+    pub fn with_status(&self, f: impl FnOnce(&mut Status)) {
+        let mut st = self.status.lock().unwrap_or_else(|p| p.into_inner());
+        f(&mut st);
+    }
+
+    /// The reply to a `boltwatch/<structure>/status` query.
+    pub fn status_reply(&self) -> contract::Status {
         let st = self.status();
         let now = chrono::Utc::now();
-        let (cum, sum) = self.latency.snapshot();
-        let n = *cum.last().unwrap_or(&0);
-        json!({
-            "schema": STATUS_SCHEMA,
-            "structure": self.structure,
-            "time": crate::pipeline::rfc3339(now),
-            "started": crate::pipeline::rfc3339(self.started),
-            "uptime_s": (now - self.started).num_milliseconds() as f64 * 1e-3,
-            "queue": {
-                "depth": self.depth.load(Ordering::Relaxed),
-                "capacity": self.queue_capacity,
+        contract::Status {
+            schema: Schema::new(),
+            structure: self.structure.clone(),
+            time: now,
+            started: self.started,
+            uptime_s: (now - self.started).num_milliseconds() as f64 * 1e-3,
+            queue: QueueStatus {
+                depth: self.depth.load(Ordering::Relaxed),
+                capacity: self.queue_capacity,
             },
-            "sets": {
-                "received": self.received.load(Ordering::Relaxed),
-                "dropped": self.dropped.load(Ordering::Relaxed),
-                "accepted": st.accepted,
-                "rejected": st.rejected,
-                "unconverged": st.unconverged,
-                "cold_starts": st.cold_starts,
+            sets: SetCounts {
+                received: self.received.load(Ordering::Relaxed),
+                dropped: self.dropped.load(Ordering::Relaxed),
+                accepted: st.accepted,
+                rejected: st.rejected,
+                unconverged: st.unconverged,
+                cold_starts: st.cold_starts,
             },
-            "update_mean_ms": if n > 0 { Some(sum / n as f64 * 1e3) } else { None },
-            "last_set_time": st.last_set_time,
-            "last_estimate": st.last_estimate,
-            "alerts": st.alerts.values().collect::<Vec<_>>(),
-            "crosschecks": {"published": st.crosschecks, "skipped": st.crosschecks_skipped},
-            "publish_errors": st.publish_errors,
-            "log_file": st.log_file,
-            "last_checkpoint": st.last_checkpoint,
-        })
+            update_mean_ms: self.latency.mean_ms(),
+            last_set_time: st.last_set_time,
+            last_estimate: st.last_estimate,
+            alerts: st.alerts.into_values().collect(),
+            crosschecks: CrosscheckCounts {
+                published: st.crosschecks,
+                skipped: st.crosschecks_skipped,
+            },
+            publish_errors: st.publish_errors,
+            log_file: st.log_file,
+            last_checkpoint: st.last_checkpoint,
+        }
     }
 }
 
-/// Schema of a status reply.
-pub const STATUS_SCHEMA: &str = "boltwatch.status.v1";
+/// Every structure's metrics, read from the shared state at each scrape. Counter names
+/// leave out `_total`: the encoder appends it.
+#[derive(Debug)]
+struct Structures(Vec<Arc<Shared>>);
 
-/// Escapes a Prometheus label value.
-fn label(v: &str) -> String {
-    v.replace('\\', "\\\\")
-        .replace('"', "\\\"")
-        .replace('\n', "\\n")
-}
-
-/// The metrics of every structure in the Prometheus text format.
-pub fn render(all: &[Arc<Shared>]) -> String {
-    use std::fmt::Write;
-    let mut o = String::new();
-    let family = |o: &mut String, name: &str, kind: &str, help: &str| {
-        let _ = writeln!(o, "# HELP {name} {help}\n# TYPE {name} {kind}");
-    };
-    let statuses: Vec<(Arc<Shared>, Status)> =
-        all.iter().map(|s| (s.clone(), s.status())).collect();
-    type Getter = fn(&Shared, &Status) -> u64;
-    let counters: [(&str, &str, Getter); 6] = [
-        (
-            "boltwatch_sets_received_total",
-            "Modal sets received over Zenoh.",
-            |s, _| s.received.load(Ordering::Relaxed),
-        ),
-        (
-            "boltwatch_sets_processed_total",
-            "Modal sets accepted and tracked.",
-            |_, st| st.accepted,
-        ),
-        (
-            "boltwatch_sets_rejected_total",
-            "Modal sets rejected (published on rejected).",
-            |_, st| st.rejected,
-        ),
-        (
-            "boltwatch_sets_dropped_total",
-            "Modal sets dropped at a full queue.",
-            |s, _| s.dropped.load(Ordering::Relaxed),
-        ),
-        (
-            "boltwatch_cold_starts_total",
-            "Updates redone from the baseline.",
-            |_, st| st.cold_starts,
-        ),
-        (
-            "boltwatch_crosschecks_skipped_total",
-            "Cross-checks skipped: the previous one was still running.",
-            |_, st| st.crosschecks_skipped,
-        ),
-    ];
-    for (name, help, get) in counters {
-        family(&mut o, name, "counter", help);
-        for (s, st) in &statuses {
-            let _ = writeln!(
-                o,
-                "{name}{{structure=\"{}\"}} {}",
-                label(&s.structure),
-                get(s, st)
-            );
-        }
-    }
-    family(
-        &mut o,
-        "boltwatch_queue_depth",
-        "gauge",
-        "Modal sets waiting in the queue.",
-    );
-    for (s, _) in &statuses {
-        let _ = writeln!(
-            o,
-            "boltwatch_queue_depth{{structure=\"{}\"}} {}",
-            label(&s.structure),
-            s.depth.load(Ordering::Relaxed)
-        );
-    }
-    family(
-        &mut o,
-        "boltwatch_update_seconds",
-        "histogram",
-        "Time to process one modal set (validation, update, filters, alerts).",
-    );
-    for (s, _) in &statuses {
-        let (cum, sum) = s.latency.snapshot();
-        let st = label(&s.structure);
-        for (b, c) in LATENCY_BUCKETS.iter().zip(&cum) {
-            let _ = writeln!(
-                o,
-                "boltwatch_update_seconds_bucket{{structure=\"{st}\",le=\"{b}\"}} {c}"
-            );
-        }
-        let n = cum.last().copied().unwrap_or(0);
-        let _ = writeln!(
-            o,
-            "boltwatch_update_seconds_bucket{{structure=\"{st}\",le=\"+Inf\"}} {n}"
-        );
-        let _ = writeln!(
-            o,
-            "boltwatch_update_seconds_sum{{structure=\"{st}\"}} {sum}"
-        );
-        let _ = writeln!(
-            o,
-            "boltwatch_update_seconds_count{{structure=\"{st}\"}} {n}"
-        );
-    }
-    family(
-        &mut o,
-        "boltwatch_theta",
-        "gauge",
-        "Latest estimate of each parameter θ (stiffness relative to nominal).",
-    );
-    for (s, st) in &statuses {
-        for (p, v) in &st.theta {
-            let _ = writeln!(
-                o,
-                "boltwatch_theta{{structure=\"{}\",parameter=\"{}\"}} {v}",
-                label(&s.structure),
-                label(p)
-            );
-        }
-    }
-    o
-}
-
-/// Serves `GET /metrics` on `listener` until the task is dropped.
-pub async fn serve(listener: tokio::net::TcpListener, all: Vec<Arc<Shared>>) {
-    loop {
-        let Ok((mut stream, _)) = listener.accept().await else {
-            continue;
-        };
-        let all = all.clone();
-        tokio::spawn(async move {
-            let mut buf = [0u8; 2048];
-            let mut n = 0;
-            // Read the request head (bounded; the body of a GET is ignored).
-            while n < buf.len() {
-                match tokio::time::timeout(Duration::from_secs(5), stream.read(&mut buf[n..])).await
-                {
-                    Ok(Ok(0)) | Err(_) | Ok(Err(_)) => break,
-                    Ok(Ok(k)) => {
-                        n += k;
-                        if buf[..n].windows(4).any(|w| w == b"\r\n\r\n") {
-                            break;
-                        }
-                    }
-                }
+impl Collector for Structures {
+    fn encode(&self, mut enc: DescriptorEncoder) -> std::fmt::Result {
+        let all: Vec<(&Shared, Status)> = self.0.iter().map(|s| (&**s, s.status())).collect();
+        type Getter = fn(&Shared, &Status) -> u64;
+        let counters: [(&str, &str, Getter); 6] = [
+            (
+                "boltwatch_sets_received",
+                "Modal sets received over Zenoh.",
+                |s, _| s.received.load(Ordering::Relaxed),
+            ),
+            (
+                "boltwatch_sets_processed",
+                "Modal sets accepted and tracked.",
+                |_, st| st.accepted,
+            ),
+            (
+                "boltwatch_sets_rejected",
+                "Modal sets rejected (published on rejected).",
+                |_, st| st.rejected,
+            ),
+            (
+                "boltwatch_sets_dropped",
+                "Modal sets dropped at a full queue.",
+                |s, _| s.dropped.load(Ordering::Relaxed),
+            ),
+            (
+                "boltwatch_cold_starts",
+                "Updates redone from the baseline.",
+                |_, st| st.cold_starts,
+            ),
+            (
+                "boltwatch_crosschecks_skipped",
+                "Cross-checks skipped: the previous one was still running.",
+                |_, st| st.crosschecks_skipped,
+            ),
+        ];
+        for (name, help, get) in counters {
+            let mut family = enc.encode_descriptor(name, help, None, MetricType::Counter)?;
+            for (s, st) in &all {
+                let labels = [("structure", s.structure.as_str())];
+                ConstCounter::new(get(s, st)).encode(family.encode_family(&labels)?)?;
             }
-            let head = String::from_utf8_lossy(&buf[..n]);
-            let line = head.lines().next().unwrap_or_default();
-            let mut parts = line.split_whitespace();
-            let (method, path) = (parts.next().unwrap_or(""), parts.next().unwrap_or(""));
-            let (code, ctype, body) = if method == "GET" && (path == "/metrics" || path == "/") {
-                (
-                    "200 OK",
-                    "text/plain; version=0.0.4; charset=utf-8",
-                    render(&all),
-                )
-            } else {
-                (
-                    "404 Not Found",
-                    "text/plain",
-                    "only GET /metrics\n".to_string(),
-                )
-            };
-            let reply = format!(
-                "HTTP/1.1 {code}\r\nContent-Type: {ctype}\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
-                body.len()
-            );
-            let _ = stream.write_all(reply.as_bytes()).await;
-            let _ = stream.shutdown().await;
-        });
+        }
+        let mut family = enc.encode_descriptor(
+            "boltwatch_queue_depth",
+            "Modal sets waiting in the queue.",
+            None,
+            MetricType::Gauge,
+        )?;
+        for (s, _) in &all {
+            let labels = [("structure", s.structure.as_str())];
+            ConstGauge::new(s.depth.load(Ordering::Relaxed))
+                .encode(family.encode_family(&labels)?)?;
+        }
+        let mut family = enc.encode_descriptor(
+            "boltwatch_update_seconds",
+            "Time to process one modal set (validation, update, filters, alerts).",
+            None,
+            MetricType::Histogram,
+        )?;
+        for (s, _) in &all {
+            let labels = [("structure", s.structure.as_str())];
+            s.latency.buckets.encode(family.encode_family(&labels)?)?;
+        }
+        let mut family = enc.encode_descriptor(
+            "boltwatch_theta",
+            "Latest estimate of each parameter θ (stiffness relative to nominal).",
+            None,
+            MetricType::Gauge,
+        )?;
+        for (s, st) in &all {
+            for p in st.last_estimate.iter().flat_map(|e| &e.parameters) {
+                let labels = [("structure", s.structure.as_str()), ("parameter", &p.name)];
+                ConstGauge::new(p.theta).encode(family.encode_family(&labels)?)?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Serves `GET /metrics` (and `GET /`) on `listener` until the task is dropped.
+pub async fn serve(listener: tokio::net::TcpListener, all: Vec<Arc<Shared>>) {
+    let mut registry = Registry::default();
+    registry.register_collector(Box::new(Structures(all)));
+    let scrape = |State(registry): State<Arc<Registry>>| async move {
+        let mut body = String::new();
+        // Writing into a String cannot fail, nor can the collector.
+        let _ = prometheus_text::encode(&mut body, &registry);
+        (
+            [(header::CONTENT_TYPE, prometheus_text::CONTENT_TYPE)],
+            body,
+        )
+    };
+    let app = axum::Router::new()
+        .route("/metrics", axum::routing::get(scrape))
+        .route("/", axum::routing::get(scrape))
+        .fallback(|| async { (StatusCode::NOT_FOUND, "only GET /metrics\n") })
+        .with_state(Arc::new(registry))
+        // One request per connection, as before: clients that read to the end (curl, the
+        // tests) get EOF, and an idle connection holds nothing.
+        .layer(axum::middleware::map_response(|mut r: Response| async {
+            r.headers_mut()
+                .insert(header::CONNECTION, HeaderValue::from_static("close"));
+            r
+        }));
+    if let Err(e) = axum::serve(listener, app).await {
+        tracing::error!("metrics endpoint stopped: {e}");
     }
 }

@@ -8,7 +8,7 @@
 //! outputs into a rolling MCAP log ([`log`]); a cross-check thread; a queryable on
 //! `boltwatch/<s>/status`. A Prometheus endpoint ([`metrics`]) serves every structure.
 //!
-//! State lives in `[daemon] state_dir`: `<s>.checkpoint.json` (the tracker, written
+//! State lives in `[daemon] state_dir` (default `$XDG_STATE_HOME/boltwatch`): `<s>.checkpoint.json` (the tracker, written
 //! atomically every `tracker.checkpoint_every_sets` sets, every `checkpoint_every_s` seconds
 //! while sets arrive, and at shutdown) and `log/`. A restart resumes from the checkpoint.
 //!
@@ -23,21 +23,27 @@ pub mod worker;
 use std::sync::mpsc;
 use std::time::Duration;
 
-use anyhow::{Context, Result, anyhow};
+use anyhow::{Context, Result, anyhow, bail};
 use zenoh::Wait;
 
-use crate::commands::load_structure;
+use crate::contract::to_wire;
 use crate::io::checkpoint;
 use crate::io::mcap::topic;
+use crate::io::model::load_structure;
 use crate::io::zenoh::{session_config, zerr};
 use crate::pipeline::Tracker;
 use crate::settings::Settings;
 use metrics::Shared;
-use worker::{Input, Worker, enqueue};
+use worker::{Input, LiveSink, Worker, enqueue};
 
 /// Runs the daemon until SIGINT or SIGTERM (or a tracking thread fails).
 pub async fn run(settings: Settings) -> Result<()> {
     let d = &settings.daemon;
+    if d.state_dir.as_os_str().is_empty() {
+        bail!(
+            "configuration key daemon.state_dir: not set, and neither XDG_STATE_HOME nor HOME is set to put the default under"
+        );
+    }
     std::fs::create_dir_all(&d.state_dir).with_context(|| {
         format!(
             "configuration key daemon.state_dir: cannot create {}",
@@ -56,12 +62,15 @@ pub async fn run(settings: Settings) -> Result<()> {
     let mut queryables = Vec::new();
     let mut shared_all = Vec::new();
     for s in &settings.structures {
-        let (spec, model) = load_structure(s)?;
+        let structure_model = std::sync::Arc::new(load_structure(s)?);
+        let model = structure_model.1.clone();
         let ckpt = d.state_dir.join(format!("{}.checkpoint.json", s.name));
-        let tracker = match checkpoint::read(&ckpt)? {
+        let tracker = match checkpoint::read(&ckpt)
+            .with_context(|| format!("{} (move it away to start afresh)", ckpt.display()))?
+        {
             Some(v) => {
                 let t =
-                    Tracker::restore(model, settings.tracker.clone(), &v).with_context(|| {
+                    Tracker::restore(model, settings.tracker.clone(), v).with_context(|| {
                         format!(
                             "checkpoint {} (move it away to start afresh)",
                             ckpt.display()
@@ -85,13 +94,15 @@ pub async fn run(settings: Settings) -> Result<()> {
         )?;
         let shared = Shared::new(&s.name, d.queue);
         let worker = Worker::new(
-            spec,
+            structure_model,
             tracker,
-            session.clone(),
-            log,
+            LiveSink {
+                session: session.clone(),
+                log,
+                shared: shared.clone(),
+            },
             ckpt,
             Duration::from_secs_f64(d.checkpoint_every_s),
-            shared.clone(),
             settings.crosscheck.clone(),
         )?;
         let (tx, rx) = mpsc::sync_channel::<Input>(d.queue);
@@ -124,7 +135,7 @@ pub async fn run(settings: Settings) -> Result<()> {
             session
                 .declare_queryable(topic(&s.name, "status"))
                 .callback(move |query| {
-                    let body = serde_json::to_vec(&q_shared.status_json()).unwrap_or_default();
+                    let body = to_wire(&q_shared.status_reply());
                     if let Err(e) = query.reply(query.key_expr().clone(), body).wait() {
                         tracing::warn!("cannot answer a status query: {e}");
                     }

@@ -7,7 +7,8 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
-use serde_json::Value;
+use serde::Serialize;
+use serde::de::DeserializeOwned;
 
 /// The temporary file a checkpoint is written to before the rename.
 fn temporary(path: &Path) -> PathBuf {
@@ -17,9 +18,9 @@ fn temporary(path: &Path) -> PathBuf {
 }
 
 /// Writes `value` to `path` atomically (module docs).
-pub fn write_atomic(path: &Path, value: &Value) -> Result<()> {
+pub fn write_atomic<T: Serialize>(path: &Path, value: &T) -> Result<()> {
     let tmp = temporary(path);
-    let bytes = serde_json::to_vec(value)?;
+    let bytes = crate::contract::to_wire(value);
     {
         let mut f = File::create(&tmp)
             .with_context(|| format!("cannot create checkpoint {}", tmp.display()))?;
@@ -41,11 +42,11 @@ pub fn write_atomic(path: &Path, value: &Value) -> Result<()> {
 }
 
 /// Reads a checkpoint; `None` if there is none.
-pub fn read(path: &Path) -> Result<Option<Value>> {
+pub fn read<T: DeserializeOwned>(path: &Path) -> Result<Option<T>> {
     match fs::read(path) {
         Ok(bytes) => serde_json::from_slice(&bytes)
             .map(Some)
-            .with_context(|| format!("checkpoint {} is not valid JSON", path.display())),
+            .with_context(|| format!("checkpoint {} is not valid", path.display())),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
         Err(e) => Err(e).with_context(|| format!("cannot read checkpoint {}", path.display())),
     }
@@ -60,14 +61,14 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("bw-ckpt-{}", std::process::id()));
         fs::create_dir_all(&dir).unwrap();
         let p = dir.join("state.json");
-        assert!(read(&p).unwrap().is_none());
+        assert!(read::<serde_json::Value>(&p).unwrap().is_none());
         write_atomic(&p, &serde_json::json!({"a": 1})).unwrap();
         write_atomic(&p, &serde_json::json!({"a": 2})).unwrap();
-        assert_eq!(read(&p).unwrap().unwrap()["a"], 2);
+        assert_eq!(read::<serde_json::Value>(&p).unwrap().unwrap()["a"], 2);
         assert!(!temporary(&p).exists());
         fs::write(&p, b"{trunc").unwrap();
-        let e = read(&p).unwrap_err();
-        assert!(format!("{e:#}").contains("not valid JSON"), "{e:#}");
+        let e = read::<serde_json::Value>(&p).unwrap_err();
+        assert!(format!("{e:#}").contains("is not valid"), "{e:#}");
         fs::remove_dir_all(&dir).unwrap();
     }
 }

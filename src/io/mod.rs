@@ -1,9 +1,12 @@
 //! Thin adapters between the sans-I/O [`crate::pipeline`] and the outside world (DESIGN §1):
-//! MCAP recordings in and out ([`mcap`]), the JSON schemas of the messages ([`schemas`]) and
-//! the atomic checkpoint store ([`checkpoint`]).
+//! MCAP recordings in and out ([`mcap`]), the JSON schemas of the messages ([`schemas`]),
+//! the atomic checkpoint store ([`checkpoint`]), model files ([`model`]), and what the replay
+//! and daemon drivers share ([`driver`]).
 
 pub mod checkpoint;
+pub mod driver;
 pub mod mcap;
+pub mod model;
 pub mod replay;
 pub mod schemas;
 pub mod zenoh;

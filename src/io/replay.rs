@@ -17,29 +17,25 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
-use std::sync::mpsc;
+use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context, Result, anyhow, bail};
+use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
 use super::checkpoint;
+use super::driver::{OffPath, Pace, Sink, dispatch};
 use super::mcap::{
     ChannelSpec, McapWriter, RecordedMessage, from_ns, read_modal_sets, read_tolerant, to_ns, topic,
 };
-use crate::commands::load_structure;
-use crate::core::model::Model;
-use crate::core::model::spec::ModelSpec;
-use crate::pipeline::crosscheck::{CrosscheckConfig, crosscheck};
-use crate::pipeline::verdict::diagnosis_alert;
-use crate::pipeline::{Action, CrosscheckRequest, DiagnoseRequest, Tracker, TrackerConfig};
+use super::model::load_structure;
+use crate::contract::{Alert, Checkpoint, Estimate, Output};
+use crate::pipeline::{Tracker, TrackerConfig, TrackerState};
 use crate::settings::Settings;
 
 /// Schema of the replay checkpoint file.
 pub const REPLAY_CHECKPOINT_SCHEMA: &str = "boltwatch.replay_checkpoint.v1";
-
-/// Output topics of each structure, in declaration order.
-pub const OUTPUT_SUFFIXES: [&str; 4] = ["stiffness", "alerts", "crosscheck", "rejected"];
 
 /// What to replay, where to.
 #[derive(Debug, Clone)]
@@ -76,12 +72,12 @@ pub struct ReplaySummary {
     pub already_complete: bool,
     /// Topics present in the recording and not read, with their message counts.
     pub skipped_topics: BTreeMap<String, u64>,
-    /// Alert payloads, in output order.
-    pub alerts: Vec<Value>,
+    /// Alerts, in output order.
+    pub alerts: Vec<Alert>,
     /// The last estimate of each structure.
-    pub last_estimate: BTreeMap<String, Value>,
+    pub last_estimate: BTreeMap<String, Estimate>,
     /// Counters of each structure's tracker.
-    pub counters: BTreeMap<String, Value>,
+    pub counters: BTreeMap<String, Counters>,
     pub crosschecks: usize,
     pub rejected: usize,
     /// Messages in the output file.
@@ -91,126 +87,56 @@ pub struct ReplaySummary {
     pub seconds: f64,
 }
 
+/// A tracker's counters at the end of a replay.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Counters {
+    pub accepted: u64,
+    pub rejected: u64,
+    pub unconverged: u64,
+    pub cold_starts: u64,
+}
+
 impl ReplaySummary {
     /// Notes a message read back from a file.
-    fn note(&mut self, m: &RecordedMessage) {
-        if let Ok(v) = serde_json::from_slice::<Value>(&m.data) {
-            self.note_value(&m.topic, &v);
+    fn note_recorded(&mut self, m: &RecordedMessage) {
+        let suffix = m.topic.rsplit('/').next().unwrap_or_default();
+        if let Ok(o) = Output::from_wire(suffix, &m.data) {
+            self.note(&o);
         }
     }
 
-    /// Notes an output by its topic and payload.
-    fn note_value(&mut self, topic: &str, v: &Value) {
-        match topic.rsplit('/').next().unwrap_or_default() {
-            "alerts" => self.alerts.push(v.clone()),
-            "stiffness" => {
-                let s = v["structure"].as_str().unwrap_or_default().to_string();
-                self.last_estimate.insert(s, v.clone());
+    /// Notes an output.
+    fn note(&mut self, o: &Output) {
+        match o {
+            Output::Alert(a) => self.alerts.push((**a).clone()),
+            Output::Estimate(e) => {
+                self.last_estimate
+                    .insert(e.structure.clone(), (**e).clone());
             }
-            "crosscheck" => self.crosschecks += 1,
-            "rejected" => self.rejected += 1,
-            _ => {}
-        }
-    }
-}
-
-/// Work done off the tracking path.
-pub enum Job {
-    Crosscheck(Box<CrosscheckRequest>),
-    Diagnose(Box<DiagnoseRequest>),
-}
-
-/// Runs the cross-checks and diagnoses of every structure on one worker thread, in request
-/// order.
-struct CrosscheckWorker {
-    jobs: Option<mpsc::Sender<(String, u64, Job)>>,
-    results: mpsc::Receiver<(String, u64, &'static str, Value)>,
-    pending: usize,
-    thread: Option<std::thread::JoinHandle<()>>,
-}
-
-impl CrosscheckWorker {
-    fn start(
-        models: HashMap<String, (ModelSpec, Model)>,
-        cfg: CrosscheckConfig,
-        shape_weight: f64,
-    ) -> Self {
-        let (jtx, jrx) = mpsc::channel::<(String, u64, Job)>();
-        let (rtx, rrx) = mpsc::channel();
-        let thread = std::thread::spawn(move || {
-            crate::core::sequential_numerics();
-            for (s, t, job) in jrx {
-                let (spec, model) = &models[&s];
-                let r = match job {
-                    Job::Crosscheck(req) => {
-                        ("crosscheck", crosscheck(model, &cfg, shape_weight, &req))
-                    }
-                    Job::Diagnose(req) => {
-                        ("alerts", diagnosis_alert(spec, model, shape_weight, &req))
-                    }
-                };
-                if rtx.send((s, t, r.0, r.1)).is_err() {
-                    return;
-                }
-            }
-        });
-        Self {
-            jobs: Some(jtx),
-            results: rrx,
-            pending: 0,
-            thread: Some(thread),
-        }
-    }
-
-    fn submit(&mut self, structure: String, log_time: u64, job: Job) -> Result<()> {
-        self.jobs
-            .as_ref()
-            .ok_or_else(|| anyhow!("cross-check worker stopped"))?
-            .send((structure, log_time, job))
-            .map_err(|_| anyhow!("cross-check worker stopped"))?;
-        self.pending += 1;
-        Ok(())
-    }
-
-    /// Waits for every submitted job and writes its result.
-    fn drain(&mut self, out: &mut Output) -> Result<()> {
-        while self.pending > 0 {
-            let (s, t, suffix, v) = self
-                .results
-                .recv()
-                .map_err(|_| anyhow!("cross-check worker died"))?;
-            self.pending -= 1;
-            crate::pipeline::log_output(&s, suffix, &v);
-            out.write(&topic(&s, suffix), t, &v)?;
-        }
-        Ok(())
-    }
-}
-
-impl Drop for CrosscheckWorker {
-    fn drop(&mut self) {
-        self.jobs.take();
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
+            Output::Crosscheck(_) => self.crosschecks += 1,
+            Output::Rejected(_) => self.rejected += 1,
         }
     }
 }
 
 /// The output file with the summary kept alongside.
-struct Output {
+struct OutputFile {
     w: McapWriter,
     syncs: Vec<u64>,
     summary: ReplaySummary,
 }
 
-impl Output {
-    fn write(&mut self, topic: &str, log_time: u64, payload: &Value) -> Result<()> {
+impl Sink for OutputFile {
+    fn emit(&mut self, output: &Output, bytes: &[u8]) -> Result<()> {
+        let t = to_ns(output.time())?;
         self.w
-            .write(topic, log_time, &serde_json::to_vec(payload)?)?;
-        self.summary.note_value(topic, payload);
+            .write(&topic(output.structure(), output.topic()), t, bytes)?;
+        self.summary.note(output);
         Ok(())
     }
+}
 
+impl OutputFile {
     fn sync(&mut self) -> Result<()> {
         self.w.sync()?;
         if self.syncs.last() != Some(&self.w.written()) {
@@ -218,6 +144,23 @@ impl Output {
         }
         Ok(())
     }
+}
+
+/// The replay's checkpoint file: where to go on from, and every tracker's checkpoint.
+#[derive(Debug, Serialize, Deserialize)]
+struct ReplayCheckpoint {
+    schema: String,
+    recording: PathBuf,
+    recording_bytes: u64,
+    recording_sets: usize,
+    /// [`fingerprint`] of the settings.
+    settings: Value,
+    next_input: usize,
+    outputs_written: u64,
+    /// Output counts at which the file was synced (chunk ends).
+    syncs: Vec<u64>,
+    complete: bool,
+    trackers: BTreeMap<String, Checkpoint<TrackerState>>,
 }
 
 /// The part of the settings a checkpoint must match to be resumed.
@@ -269,16 +212,16 @@ pub fn replay(
     let mut models = HashMap::new();
     let mut channels = Vec::new();
     for s in &settings.structures {
-        for suffix in OUTPUT_SUFFIXES {
+        for suffix in Output::TOPICS {
             channels.push(ChannelSpec::for_structure(&s.name, suffix)?);
         }
-        models.insert(s.name.clone(), load_structure(s)?);
+        models.insert(s.name.clone(), Arc::new(load_structure(s)?));
     }
     let tracker_cfg: TrackerConfig = settings.tracker.clone();
     let fp = fingerprint(settings);
     let part = opts.part();
 
-    let previous = if opts.resume {
+    let previous: Option<ReplayCheckpoint> = if opts.resume {
         checkpoint::read(&opts.checkpoint)?
     } else {
         None
@@ -292,27 +235,27 @@ pub fn replay(
     let (start, w, syncs) = match previous {
         Some(c) => {
             let ctx = |what: &str| format!("checkpoint {}: {what}", opts.checkpoint.display());
-            if c["schema"] != REPLAY_CHECKPOINT_SCHEMA {
+            if c.schema != REPLAY_CHECKPOINT_SCHEMA {
                 bail!(ctx(&format!(
                     "schema is {}, expected {REPLAY_CHECKPOINT_SCHEMA}",
-                    c["schema"]
+                    c.schema
                 )));
             }
-            if c["recording_bytes"] != recording_bytes || c["recording_sets"] != sets.len() {
+            if c.recording_bytes != recording_bytes || c.recording_sets != sets.len() {
                 bail!(ctx(&format!(
                     "written for a recording of {} bytes and {} sets, {} has {recording_bytes} bytes and {} sets",
-                    c["recording_bytes"],
-                    c["recording_sets"],
+                    c.recording_bytes,
+                    c.recording_sets,
                     opts.recording.display(),
                     sets.len()
                 )));
             }
-            if c["settings"] != fp {
+            if c.settings != fp {
                 bail!(ctx(
                     "written with a different configuration (structures, tracker or crosscheck); replay without --resume"
                 ));
             }
-            if c["complete"] == true {
+            if c.complete {
                 if !opts.out.exists() && part.exists() {
                     std::fs::rename(&part, &opts.out).with_context(|| {
                         format!("cannot move {} to {}", part.display(), opts.out.display())
@@ -323,23 +266,19 @@ pub fn replay(
                 let all = super::mcap::read_all(&opts.out)?;
                 s.outputs = all.len() as u64;
                 for m in &all {
-                    s.note(m);
+                    s.note_recorded(m);
                 }
                 s.seconds = started.elapsed().as_secs_f64();
                 return Ok(s);
             }
-            let next = c["next_input"]
-                .as_u64()
-                .ok_or_else(|| anyhow!(ctx("no next_input")))? as usize;
-            let written = c["outputs_written"]
-                .as_u64()
-                .ok_or_else(|| anyhow!(ctx("no outputs_written")))?;
-            let syncs: Vec<u64> = serde_json::from_value(c["syncs"].clone())
-                .map_err(|e| anyhow!(ctx(&e.to_string())))?;
+            let (next, written, syncs) = (c.next_input, c.outputs_written, c.syncs);
+            let mut states = c.trackers;
             for (name, model) in &models {
-                let t =
-                    Tracker::restore(model.1.clone(), tracker_cfg.clone(), &c["trackers"][name])
-                        .with_context(|| ctx(&format!("tracker of {name}")))?;
+                let state = states
+                    .remove(name)
+                    .ok_or_else(|| anyhow!(ctx(&format!("no tracker of {name}"))))?;
+                let t = Tracker::restore(model.1.clone(), tracker_cfg.clone(), state)
+                    .with_context(|| ctx(&format!("tracker of {name}")))?;
                 trackers.insert(name.clone(), t);
             }
             if !part.exists() {
@@ -363,7 +302,7 @@ pub fn replay(
             let mut w = McapWriter::create(&fresh, &channels)?;
             for (i, m) in kept.iter().take(written as usize).enumerate() {
                 w.copy(m)?;
-                summary.note(m);
+                summary.note_recorded(m);
                 if syncs.binary_search(&(i as u64 + 1)).is_ok() {
                     w.sync()?;
                 }
@@ -397,12 +336,13 @@ pub fn replay(
             (0, McapWriter::create(&part, &channels)?, Vec::new())
         }
     };
-    let mut out = Output { w, syncs, summary };
-    let mut worker = CrosscheckWorker::start(
+    let mut out = OutputFile { w, syncs, summary };
+    let mut lane = OffPath::start(
+        "replay-offpath",
         models,
         settings.crosscheck.clone(),
         tracker_cfg.shape_weight,
-    );
+    )?;
 
     let write_checkpoint = |written: u64,
                             syncs: &[u64],
@@ -410,24 +350,23 @@ pub fn replay(
                             next: usize,
                             complete: bool|
      -> Result<()> {
-        let states: serde_json::Map<String, Value> = trackers
-            .iter()
-            .map(|(n, t)| (n.clone(), t.checkpoint()))
-            .collect();
         checkpoint::write_atomic(
             &opts.checkpoint,
-            &json!({
-                "schema": REPLAY_CHECKPOINT_SCHEMA,
-                "recording": opts.recording,
-                "recording_bytes": recording_bytes,
-                "recording_sets": sets.len(),
-                "settings": fp,
-                "next_input": next,
-                "outputs_written": written,
-                "syncs": syncs,
-                "complete": complete,
-                "trackers": states,
-            }),
+            &ReplayCheckpoint {
+                schema: REPLAY_CHECKPOINT_SCHEMA.into(),
+                recording: opts.recording.clone(),
+                recording_bytes,
+                recording_sets: sets.len(),
+                settings: fp.clone(),
+                next_input: next,
+                outputs_written: written,
+                syncs: syncs.to_vec(),
+                complete,
+                trackers: trackers
+                    .iter()
+                    .map(|(n, t)| (n.clone(), t.checkpoint()))
+                    .collect(),
+            },
         )
     };
 
@@ -436,43 +375,18 @@ pub fn replay(
             .get_mut(structure)
             .expect("a tracker per watched structure");
         let actions = tracker.handle(from_ns(msg.log_time), &msg.data);
-        let mut checkpoint_due = false;
-        for a in actions {
-            match a {
-                Action::Publish {
-                    topic: suffix,
-                    time,
-                    payload,
-                    ..
-                } => {
-                    let t = to_ns(time)?;
-                    crate::pipeline::log_output(structure, suffix, &payload);
-                    out.write(&topic(structure, suffix), t, &payload)?;
-                }
-                Action::Crosscheck(req) => {
-                    worker.drain(&mut out)?;
-                    let t = to_ns(req.set.time)?;
-                    worker.submit(structure.clone(), t, Job::Crosscheck(req))?;
-                }
-                Action::Diagnose(req) => {
-                    worker.drain(&mut out)?;
-                    let t = to_ns(req.set.time)?;
-                    worker.submit(structure.clone(), t, Job::Diagnose(req))?;
-                }
-                Action::Checkpoint(_) => checkpoint_due = true,
-            }
-        }
-        if checkpoint_due {
-            worker.drain(&mut out)?;
+        let d = dispatch(structure, actions, &mut lane, &mut out, Pace::Deterministic)?;
+        if d.checkpoint_due {
+            lane.drain(&mut out)?;
             out.sync()?;
             write_checkpoint(out.w.written(), &out.syncs, &trackers, k + 1, false)?;
         }
         out.summary.processed += 1;
         progress(k + 1, sets.len());
     }
-    worker.drain(&mut out)?;
-    drop(worker);
-    let Output {
+    lane.drain(&mut out)?;
+    drop(lane);
+    let OutputFile {
         w,
         syncs,
         mut summary,
@@ -488,10 +402,12 @@ pub fn replay(
         let st = t.state();
         summary.counters.insert(
             name.clone(),
-            json!({
-                "accepted": st.accepted, "rejected": st.rejected,
-                "unconverged": st.unconverged, "cold_starts": st.cold_starts,
-            }),
+            Counters {
+                accepted: st.accepted,
+                rejected: st.rejected,
+                unconverged: st.unconverged,
+                cold_starts: st.cold_starts,
+            },
         );
     }
     summary.seconds = started.elapsed().as_secs_f64();

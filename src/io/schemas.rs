@@ -2,7 +2,7 @@
 //! MCAP files beside the channels (schema encoding `jsonschema`, DESIGN §3.4), so recordings
 //! open in standard MCAP tools.
 
-use crate::pipeline::{ALERT_SCHEMA, CROSSCHECK_SCHEMA, REJECTED_SCHEMA, STIFFNESS_SCHEMA};
+use crate::contract::{Alert, Crosscheck, Estimate, Message, Rejected};
 
 /// Schema name of the truth channel of synthetic recordings.
 pub const TRUTH_SCHEMA: &str = "boltwatch.truth.v1";
@@ -17,18 +17,18 @@ pub const CHANNELS: [(&str, &str, &str); 6] = [
     ),
     (
         "stiffness",
-        STIFFNESS_SCHEMA,
+        Estimate::SCHEMA,
         include_str!("schemas/stiffness.json"),
     ),
-    ("alerts", ALERT_SCHEMA, include_str!("schemas/alert.json")),
+    ("alerts", Alert::SCHEMA, include_str!("schemas/alert.json")),
     (
         "crosscheck",
-        CROSSCHECK_SCHEMA,
+        Crosscheck::SCHEMA,
         include_str!("schemas/crosscheck.json"),
     ),
     (
         "rejected",
-        REJECTED_SCHEMA,
+        Rejected::SCHEMA,
         include_str!("schemas/rejected.json"),
     ),
     ("truth", TRUTH_SCHEMA, include_str!("schemas/truth.json")),

@@ -17,6 +17,7 @@
 //! time. `persistence` inadequate sets in a row raise a warning; `persistence` adequate
 //! sets in a row clear it.
 
+use crate::contract::AlertLevel;
 use serde::{Deserialize, Serialize};
 
 /// Thresholds of the loosening alert.
@@ -95,25 +96,8 @@ pub enum Level {
 /// A change of level to report.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Transition {
-    /// `warning`, `alarm` or `cleared`.
-    pub level: &'static str,
+    pub level: AlertLevel,
     pub confidence: f64,
-}
-
-/// Standard normal CDF (Abramowitz–Stegun 7.1.26 on erfc, |error| < 1.5e-7).
-pub fn normal_cdf(z: f64) -> f64 {
-    let x = z.abs() / std::f64::consts::SQRT_2;
-    let t = 1.0 / (1.0 + 0.327_591_1 * x);
-    let poly = t
-        * (0.254_829_592
-            + t * (-0.284_496_736
-                + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
-    let erfc = poly * (-x * x).exp();
-    if z >= 0.0 {
-        1.0 - 0.5 * erfc
-    } else {
-        0.5 * erfc
-    }
 }
 
 /// Loosening state of one connection.
@@ -142,7 +126,7 @@ impl LooseningState {
     pub fn confidence(baseline: f64, level: f64, std: f64, drop: f64) -> f64 {
         let limit = (1.0 - drop) * baseline;
         if std > 0.0 && std.is_finite() {
-            normal_cdf((limit - level) / std)
+            crate::core::stats::normal_cdf((limit - level) / std)
         } else if level < limit {
             1.0
         } else {
@@ -169,21 +153,21 @@ impl LooseningState {
             Level::Normal | Level::Warning if self.alarm_run >= t.persistence => {
                 self.level = Level::Alarm;
                 Some(Transition {
-                    level: "alarm",
+                    level: AlertLevel::Alarm,
                     confidence: c_alarm,
                 })
             }
             Level::Normal if self.warn_run >= t.persistence => {
                 self.level = Level::Warning;
                 Some(Transition {
-                    level: "warning",
+                    level: AlertLevel::Warning,
                     confidence: c_warn,
                 })
             }
             Level::Warning | Level::Alarm if self.clear_run >= t.persistence => {
                 self.level = Level::Normal;
                 Some(Transition {
-                    level: "cleared",
+                    level: AlertLevel::Cleared,
                     confidence: 1.0 - c_warn,
                 })
             }
@@ -212,8 +196,8 @@ impl InadequacyState {
         nu: f64,
         window: u32,
         persistence: u32,
-    ) -> Option<&'static str> {
-        use crate::core::updating::chi2_bound_of_dof as bound;
+    ) -> Option<AlertLevel> {
+        use crate::core::stats::chi2_bound_of_dof as bound;
         let window = window.max(1) as usize;
         self.recent.push_back((epsilon, nu));
         while self.recent.len() > window {
@@ -236,10 +220,10 @@ impl InadequacyState {
         }
         if !self.raised && self.above_run >= persistence {
             self.raised = true;
-            Some("warning")
+            Some(AlertLevel::Warning)
         } else if self.raised && self.below_run >= persistence {
             self.raised = false;
-            Some("cleared")
+            Some(AlertLevel::Cleared)
         } else {
             None
         }
@@ -249,23 +233,6 @@ impl InadequacyState {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn normal_cdf_known_values() {
-        for (z, p) in [
-            (0.0, 0.5),
-            (1.0, 0.841_344_746),
-            (-1.959_963_985, 0.025),
-            (1.644_853_627, 0.95),
-            (3.0, 0.998_650_102),
-        ] {
-            assert!(
-                (normal_cdf(z) - p).abs() < 2e-7,
-                "Φ({z}) = {}",
-                normal_cdf(z)
-            );
-        }
-    }
 
     /// A stiffness stepping down 40 % with a tight band: warning and alarm are both due on
     /// the first set, so the alarm comes after `persistence` sets (an alarm is not preceded
@@ -280,7 +247,7 @@ mod tests {
             for _ in 0..n {
                 let k = log.len();
                 if let Some(tr) = s.step(&t, 1.0, level, 0.01) {
-                    log.push((k, tr.level));
+                    log.push((k, tr.level.as_str()));
                 } else {
                     log.push((k, ""));
                 }
@@ -302,7 +269,7 @@ mod tests {
         let mut s = LooseningState::default();
         let tr: Vec<_> = (0..4).filter_map(|_| s.step(&t, 1.0, 0.8, 0.01)).collect();
         assert_eq!(tr.len(), 1);
-        assert_eq!(tr[0].level, "warning");
+        assert_eq!(tr[0].level, AlertLevel::Warning);
         assert!(tr[0].confidence > 0.99);
         let mut s = LooseningState::default();
         assert!((0..10).all(|_| s.step(&t, 1.0, 0.8, 0.1).is_none()));
@@ -314,8 +281,8 @@ mod tests {
         let mut s = InadequacyState::default();
         let eps = [8.0, 50.0, 50.0, 8.0, 50.0, 50.0, 50.0, 8.0, 8.0, 8.0];
         let out: Vec<_> = eps.iter().map(|&e| s.step(e, 8.0, 1, 3)).collect();
-        assert_eq!(out[6], Some("warning"));
-        assert_eq!(out[9], Some("cleared"));
+        assert_eq!(out[6], Some(AlertLevel::Warning));
+        assert_eq!(out[9], Some(AlertLevel::Cleared));
         assert_eq!(out.iter().flatten().count(), 2);
         // NaN counts as above the bound (an update that produced no ε is not adequate).
         let mut s = InadequacyState::default();
@@ -334,7 +301,7 @@ mod tests {
         let mut s = InadequacyState::default();
         let out: Vec<_> = (0..20).map(|_| s.step(455.0, 370.0, 10, 3)).collect();
         assert_eq!(out.iter().position(Option::is_some), Some(11));
-        assert_eq!(out[11], Some("warning"));
+        assert_eq!(out[11], Some(AlertLevel::Warning));
         let mut s = InadequacyState::default();
         assert!((0..50).all(|_| s.step(370.0, 370.0, 10, 3).is_none()));
     }

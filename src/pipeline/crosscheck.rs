@@ -12,9 +12,12 @@
 //! Pure: runs on the caller's thread; the drivers run it off the tracking path.
 
 use serde::{Deserialize, Serialize};
-use serde_json::{Value, json};
 
-use super::{CROSSCHECK_SCHEMA, CrosscheckRequest, measured_data, rfc3339};
+use super::{CrosscheckRequest, measured_data};
+use crate::contract::crosscheck::{
+    BayesTheta, FitIterations, MapSolve, ParameterComparison, ThetaStd,
+};
+use crate::contract::{Crosscheck, Schema, finite};
 use crate::core::model::Model;
 use crate::core::updating::bayesian::{BayesProblem, BayesSettings};
 
@@ -67,14 +70,14 @@ impl CrosscheckConfig {
     }
 }
 
-/// Runs the cross-check and returns the `boltwatch.crosscheck.v1` payload. A failed MAP
-/// solve is reported in the payload (`ok: false`, `error`), never dropped.
+/// Runs the cross-check. A failed MAP solve is reported in the message (`ok: false`,
+/// `error`), never dropped.
 pub fn crosscheck(
     model: &Model,
     cfg: &CrosscheckConfig,
     shape_weight: f64,
     req: &CrosscheckRequest,
-) -> Value {
+) -> Crosscheck {
     let sigma_c = cfg
         .sigma_c
         .or(model.bayesian.sigma_c)
@@ -96,64 +99,56 @@ pub fn crosscheck(
         let free = prob.threshold_free_covariance(&res.state)?;
         Ok((res, free.sampling_theta_std(), free.posterior_theta_std()))
     });
-    let mut body = json!({
-        "schema": CROSSCHECK_SCHEMA,
-        "structure": model.name,
-        "time": rfc3339(req.set.time),
-        "sigma_c": sigma_c,
-        "mode_matching": {"iterations": req.iterations},
-    });
-    let finite = |v: f64| v.is_finite().then_some(v);
+    let mut c = Crosscheck {
+        schema: Schema::new(),
+        structure: model.name.clone(),
+        time: req.set.time,
+        sigma_c,
+        mode_matching: FitIterations {
+            iterations: req.iterations,
+        },
+        ok: false,
+        error: None,
+        bayesian: None,
+        parameters: Vec::new(),
+        max_z: None,
+        disagree: Vec::new(),
+    };
     match outcome {
         Ok((res, std_b, post_b)) => {
-            let mut max_z: Option<f64> = None;
-            let mut disagree = Vec::new();
-            let params: Vec<Value> = model
-                .parameters()
-                .iter()
-                .enumerate()
-                .map(|(l, par)| {
-                    let (a, b) = (req.theta[l], res.state.theta[l]);
-                    let s = (req.std[l].powi(2) + std_b[l].powi(2)).sqrt();
-                    let z = finite((a - b).abs() / s);
-                    if let Some(z) = z {
-                        max_z = Some(max_z.map_or(z, |m| m.max(z)));
-                        if z > cfg.disagree_z {
-                            disagree.push(par.name.clone());
-                        }
+            for (l, par) in model.parameters().iter().enumerate() {
+                let (a, b) = (req.theta[l], res.state.theta[l]);
+                let s = (req.std[l].powi(2) + std_b[l].powi(2)).sqrt();
+                let z = finite((a - b).abs() / s);
+                if let Some(z) = z {
+                    c.max_z = Some(c.max_z.map_or(z, |m| m.max(z)));
+                    if z > cfg.disagree_z {
+                        c.disagree.push(par.name.clone());
                     }
-                    json!({
-                        "name": par.name,
-                        "mode_matching": {"theta": a, "std": finite(req.std[l])},
-                        "bayesian": {"theta": b, "std": finite(std_b[l]), "posterior_std": finite(post_b[l])},
-                        "z": z,
-                    })
-                })
-                .collect();
-            let b = body.as_object_mut().expect("object");
-            b.insert("ok".into(), res.converged.into());
-            b.insert(
-                "error".into(),
-                (!res.converged)
-                    .then(|| "the MAP solve did not converge".to_string())
-                    .into(),
-            );
-            b.insert(
-                "bayesian".into(),
-                json!({"iterations": res.iterations, "converged": res.converged, "j_p": res.terms.total}),
-            );
-            b.insert("parameters".into(), params.into());
-            b.insert("max_z".into(), max_z.into());
-            b.insert("disagree".into(), disagree.into());
+                }
+                c.parameters.push(ParameterComparison {
+                    name: par.name.clone(),
+                    mode_matching: ThetaStd {
+                        theta: a,
+                        std: finite(req.std[l]),
+                    },
+                    bayesian: BayesTheta {
+                        theta: b,
+                        std: finite(std_b[l]),
+                        posterior_std: finite(post_b[l]),
+                    },
+                    z,
+                });
+            }
+            c.ok = res.converged;
+            c.error = (!res.converged).then(|| "the MAP solve did not converge".to_string());
+            c.bayesian = Some(MapSolve {
+                iterations: res.iterations,
+                converged: res.converged,
+                j_p: res.terms.total,
+            });
         }
-        Err(e) => {
-            let b = body.as_object_mut().expect("object");
-            b.insert("ok".into(), false.into());
-            b.insert("error".into(), e.to_string().into());
-            b.insert("parameters".into(), Value::Array(vec![]));
-            b.insert("max_z".into(), Value::Null);
-            b.insert("disagree".into(), Value::Array(vec![]));
-        }
+        Err(e) => c.error = Some(e.to_string()),
     }
-    body
+    c
 }

@@ -22,8 +22,7 @@
 
 use serde::{Deserialize, Serialize};
 
-/// Two-sided 95 % normal quantile.
-pub const Z95: f64 = 1.959_963_984_540_054;
+use crate::core::stats::Z95;
 
 /// Process-noise intensities of the filter, relative to the parameter's scale.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

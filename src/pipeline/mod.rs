@@ -19,71 +19,40 @@ pub mod verdict;
 
 use chrono::{DateTime, Utc};
 use serde::{Deserialize, Serialize};
-use serde_json::{Value, json};
 
 use crate::contract::modal_set::{ModalSet, Rejection, ValidationContext, parse_modal_set};
-use crate::core::modal::eigen::WarmBlock;
+use crate::contract::stiffness::{FilteredLevel, Method, ParameterEstimate};
+use crate::contract::{
+    Alert, AlertDetail, AlertKind, AlertLevel, Checkpoint, EigenBlock, Estimate, ModeComparison,
+    Output, Rejected, Schema, finite,
+};
 use crate::core::model::{Model, ParameterKind};
+use crate::core::stats::{Z95, chi2_bound, chi2_dof};
 use crate::core::updating::data::RawMode;
 use crate::core::updating::{
     Evaluator, FinalStep, MeasuredData, ModeMatching, ModeMatchingOptions, ModeMatchingResult,
-    UpdateError, chi2_bound, chi2_dof,
+    UpdateError,
 };
 use alerts::{InadequacyState, LooseningState};
 pub use config::{TrackerConfig, TrackerError};
-use drift::{DriftFilter, Z95};
-use outputs::{alert, finite, loosening_message};
-pub use outputs::{level_name, rfc3339};
-
-/// Schema names of the outputs (DESIGN §3.3).
-pub const STIFFNESS_SCHEMA: &str = "boltwatch.stiffness.v1";
-pub const ALERT_SCHEMA: &str = "boltwatch.alert.v1";
-pub const CROSSCHECK_SCHEMA: &str = "boltwatch.crosscheck.v1";
-pub const REJECTED_SCHEMA: &str = "boltwatch.rejected.v1";
-/// Schema of the checkpoint file.
-pub const CHECKPOINT_SCHEMA: &str = "boltwatch.checkpoint.v1";
-
-/// Raw payload bytes kept in a rejection message.
-pub const REJECTED_PAYLOAD_LIMIT: usize = 4096;
+use drift::DriftFilter;
+use outputs::{inadequacy_message, loosening_message};
 
 /// Something the driver must do.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Action {
-    /// Publish `payload` on `boltwatch/<structure>/<topic>` with this schema; `time` is the
-    /// time of the modal set it answers (log time of the output).
-    Publish {
-        topic: &'static str,
-        schema: &'static str,
-        time: DateTime<Utc>,
-        payload: Value,
-    },
+    /// Publish this output on `boltwatch/<structure>/<topic>`; its log time is
+    /// [`Output::time`].
+    Publish(Output),
     /// Run the Bayesian cross-check on this set, off the tracking path, and publish its
     /// result ([`crosscheck`]) on `crosscheck`.
     Crosscheck(Box<CrosscheckRequest>),
-    /// Persist this state (atomically); [`Tracker::restore`] resumes from it.
-    Checkpoint(Value),
+    /// Persist [`Tracker::checkpoint`] (atomically); [`Tracker::restore`] resumes from it.
+    Checkpoint,
     /// Run the discrepancy workflow on the set that raised the model-inadequacy warning,
     /// off the tracking path, and publish its verdict on `alerts`
     /// ([`verdict::diagnosis_alert`]).
     Diagnose(Box<DiagnoseRequest>),
-}
-
-/// Logs an output a driver publishes: a rejection as a warning, an alert as information.
-pub fn log_output(structure: &str, suffix: &str, payload: &Value) {
-    match suffix {
-        "rejected" => tracing::warn!(
-            structure,
-            field = payload["field"].as_str().unwrap_or_default(),
-            "rejected set: {}",
-            payload["reason"].as_str().unwrap_or_default()
-        ),
-        "alerts" => tracing::info!(
-            structure,
-            "alert: {}",
-            payload["message"].as_str().unwrap_or_default()
-        ),
-        _ => {}
-    }
 }
 
 /// What the diagnosis of a model-inadequacy warning needs.
@@ -183,21 +152,16 @@ impl Tracker {
         Self::with_state(model, cfg, state)
     }
 
-    /// A tracker resumed from a checkpoint written by [`Action::Checkpoint`].
+    /// A tracker resumed from a checkpoint ([`Tracker::checkpoint`]).
     pub fn restore(
         model: Model,
         cfg: TrackerConfig,
-        checkpoint: &Value,
+        checkpoint: Checkpoint<TrackerState>,
     ) -> Result<Self, TrackerError> {
         cfg.validate()?;
-        let schema = checkpoint.get("schema").and_then(Value::as_str);
-        if schema != Some(CHECKPOINT_SCHEMA) {
-            return Err(TrackerError::Checkpoint(format!(
-                "schema is {schema:?}, expected {CHECKPOINT_SCHEMA}"
-            )));
-        }
-        let state: TrackerState = serde_json::from_value(checkpoint["state"].clone())
-            .map_err(|e| TrackerError::Checkpoint(e.to_string()))?;
+        let Checkpoint {
+            state, eigen_block, ..
+        } = checkpoint;
         if state.structure != model.name {
             return Err(TrackerError::Checkpoint(format!(
                 "written for structure {}, not {}",
@@ -211,10 +175,10 @@ impl Tracker {
                 state.filters.len()
             )));
         }
-        let block = match checkpoint.get("eigen_block") {
-            None | Some(Value::Null) => None,
-            Some(v) => Some(warm_block_from_json(v, model.n_dof(), p)?),
-        };
+        let block = eigen_block
+            .map(|b| b.into_warm_block(model.n_dof(), p))
+            .transpose()
+            .map_err(|why| TrackerError::Checkpoint(format!("eigen_block: {why}")))?;
         let mut tracker = Self::with_state(model, cfg, state)?;
         if let Some(b) = block {
             tracker.mm.evaluator.restore_warm_state(b);
@@ -279,14 +243,14 @@ impl Tracker {
         &self.state
     }
 
-    /// The checkpoint of the current state.
-    pub fn checkpoint(&self) -> Value {
-        json!({
-            "schema": CHECKPOINT_SCHEMA,
-            "state": serde_json::to_value(&self.state).expect("state serializes"),
-            // The eigen solver's warm-start block: a resume continues bit for bit.
-            "eigen_block": self.mm.evaluator.warm_state().map(|b| warm_block_to_json(&b)),
-        })
+    /// The checkpoint of the current state, with the eigen solver's warm-start block: a
+    /// resume continues bit for bit.
+    pub fn checkpoint(&self) -> Checkpoint<TrackerState> {
+        Checkpoint {
+            schema: Schema::new(),
+            state: self.state.clone(),
+            eigen_block: self.mm.evaluator.warm_state().map(|b| EigenBlock::from(&b)),
+        }
     }
 
     /// Handles one raw payload received at `received` (the driver's clock or the
@@ -309,27 +273,13 @@ impl Tracker {
     }
 
     fn rejection(&self, received: DateTime<Utc>, rej: &Rejection, payload: &[u8]) -> Action {
-        let text = String::from_utf8_lossy(payload);
-        let mut cut = text.len().min(REJECTED_PAYLOAD_LIMIT);
-        while !text.is_char_boundary(cut) {
-            cut -= 1;
-        }
-        Action::Publish {
-            topic: "rejected",
-            schema: REJECTED_SCHEMA,
-            time: received,
-            payload: json!({
-                "schema": REJECTED_SCHEMA,
-                "structure": self.model.name,
-                "time": rfc3339(received),
-                "received": rfc3339(received),
-                "reason": rej.reason,
-                "field": rej.field,
-                "payload": &text[..cut],
-                "payload_bytes": payload.len(),
-                "truncated": cut < text.len(),
-            }),
-        }
+        Action::Publish(Output::Rejected(Box::new(Rejected::payload(
+            &self.model.name,
+            received,
+            &rej.field,
+            &rej.reason,
+            payload,
+        ))))
     }
 
     fn handle_set(
@@ -387,7 +337,7 @@ impl Tracker {
         }
         // Estimate.
         let baseline = st.baseline.clone();
-        let params: Vec<Value> = self
+        let parameters = self
             .model
             .parameters()
             .iter()
@@ -395,59 +345,63 @@ impl Tracker {
             .map(|(l, p)| {
                 let f = st.filters[l].estimate();
                 let b = baseline.as_ref().map(|b| b[l]);
-                json!({
-                    "name": p.name,
-                    "theta": res.theta[l],
-                    "std": finite(std[l]),
-                    "lower95": finite(res.theta[l] - Z95 * std[l]),
-                    "upper95": finite(res.theta[l] + Z95 * std[l]),
-                    "baseline": b,
-                    "change": b.map(|b| (res.theta[l] - b) / b),
-                    "stiffness": self.k_nominal[l].map(|k| k * res.theta[l]),
-                    "filtered": {
-                        "level": f.level, "trend_per_day": f.trend, "std": f.std,
-                        "lower95": f.lower95, "upper95": f.upper95,
-                        "change": b.map(|b| (f.level - b) / b),
+                ParameterEstimate {
+                    name: p.name.clone(),
+                    theta: res.theta[l],
+                    std: finite(std[l]),
+                    lower95: finite(res.theta[l] - Z95 * std[l]),
+                    upper95: finite(res.theta[l] + Z95 * std[l]),
+                    baseline: b,
+                    change: b.map(|b| (res.theta[l] - b) / b),
+                    stiffness: self.k_nominal[l].map(|k| k * res.theta[l]),
+                    filtered: FilteredLevel {
+                        level: f.level,
+                        trend_per_day: f.trend,
+                        std: f.std,
+                        lower95: f.lower95,
+                        upper95: f.upper95,
+                        change: b.map(|b| (f.level - b) / b),
                     },
-                })
+                }
             })
             .collect();
-        let modes: Vec<Value> = set
+        let modes = set
             .modes
             .iter()
             .enumerate()
-            .map(|(m, mode)| {
-                json!({
-                    "measured_hz": mode.frequency_hz,
-                    "model_hz": res.last.model_hz(m),
-                    "mac": finite(res.last.mac[m]),
-                    "paired_with": res.last.pairing[m] + 1,
-                })
-            })
+            .map(|(m, mode)| ModeComparison::of(&res.last, m, mode.frequency_hz))
             .collect();
-        actions.push(Action::Publish {
-            topic: "stiffness",
-            schema: STIFFNESS_SCHEMA,
+        actions.push(Action::Publish(Output::Estimate(Box::new(Estimate {
+            schema: Schema::new(),
+            structure: self.model.name.clone(),
             time: set.time,
-            payload: json!({
-                "schema": STIFFNESS_SCHEMA,
-                "structure": self.model.name,
-                "time": rfc3339(set.time),
-                "method": "mode-matching",
-                "converged": converged,
-                "termination": format!("{:?}", res.termination),
-                "iterations": res.iterations,
-                "warm_start": warm,
-                "cold_start_reason": fallback,
-                "epsilon": res.epsilon(),
-                "epsilon_bound": bound,
-                "temperature_c": set.temperature_c,
-                "parameters": params,
-                "modes": modes,
-            }),
-        });
+            method: Method::ModeMatching,
+            converged,
+            termination: (&res.termination).into(),
+            iterations: res.iterations,
+            warm_start: warm,
+            cold_start_reason: fallback,
+            epsilon: res.epsilon(),
+            epsilon_bound: bound,
+            temperature_c: set.temperature_c,
+            parameters,
+            modes,
+        }))));
         // Alerts.
         let st = &mut self.state;
+        let alert = |connection: Option<String>, kind, level, confidence, message, detail| {
+            Action::Publish(Output::Alert(Box::new(Alert {
+                schema: Schema::new(),
+                structure: self.model.name.clone(),
+                time: set.time,
+                connection,
+                kind,
+                level,
+                confidence,
+                message,
+                detail,
+            })))
+        };
         if let Some(level) = st.inadequacy.step(
             res.epsilon(),
             chi2_dof(data.n_data(), self.model.n_params()),
@@ -455,29 +409,18 @@ impl Tracker {
             self.cfg.alerts.persistence,
         ) {
             actions.push(alert(
-                &self.model.name,
-                set.time,
-                json!({
-                    "connection": null,
-                    "kind": "model-inadequate",
-                    "level": level,
-                    "epsilon": res.epsilon(),
-                    "epsilon_bound": bound,
-                    "confidence": null,
-                    "message": if level == "cleared" {
-                        format!("ε = {:.1} back within its χ² bound {bound:.1}", res.epsilon())
-                    } else {
-                        format!(
-                            "ε = {:.1} (χ² bound {bound:.1}): ε above its χ² bound, alone or summed over the last {} sets, \
-                             on {} successive sets: the model class misses an effect; loosening verdicts are unreliable until diagnosed",
-                            res.epsilon(),
-                            self.cfg.alerts.inadequacy_window,
-                            self.cfg.alerts.persistence
-                        )
-                    },
-                }),
+                None,
+                AlertKind::ModelInadequate,
+                level,
+                None,
+                inadequacy_message(level, res.epsilon(), bound, &self.cfg.alerts),
+                AlertDetail::Inadequacy {
+                    epsilon: res.epsilon(),
+                    epsilon_bound: bound,
+                    diagnosis: None,
+                },
             ));
-            if level == "warning" {
+            if level == AlertLevel::Warning {
                 actions.push(Action::Diagnose(Box::new(DiagnoseRequest {
                     set: set.clone(),
                     epsilon: res.epsilon(),
@@ -494,22 +437,21 @@ impl Tracker {
                 if let Some(tr) = st.loosening[l].step(&self.cfg.alerts, b_l, f.level, f.std) {
                     let name = &self.model.parameters()[l].name;
                     let drop = (b_l - f.level) / b_l;
+                    let inadequate = st.inadequacy.raised;
                     actions.push(alert(
-                        &self.model.name,
-                        set.time,
-                        json!({
-                            "connection": name,
-                            "kind": "loosening",
-                            "level": tr.level,
-                            "theta": f.level,
-                            "lower95": f.lower95,
-                            "upper95": f.upper95,
-                            "baseline": b_l,
-                            "drop": drop,
-                            "confidence": tr.confidence,
-                            "model_inadequate": st.inadequacy.raised,
-                            "message": loosening_message(name, tr.level, drop, tr.confidence, st.inadequacy.raised),
-                        }),
+                        Some(name.clone()),
+                        AlertKind::Loosening,
+                        tr.level,
+                        Some(tr.confidence),
+                        loosening_message(name, tr.level, drop, tr.confidence, inadequate),
+                        AlertDetail::Loosening {
+                            theta: f.level,
+                            lower95: f.lower95,
+                            upper95: f.upper95,
+                            baseline: b_l,
+                            drop,
+                            model_inadequate: inadequate,
+                        },
                     ));
                 }
             }
@@ -535,7 +477,7 @@ impl Tracker {
             }
         }
         if st.accepted.is_multiple_of(self.cfg.checkpoint_every_sets) {
-            actions.push(Action::Checkpoint(self.checkpoint()));
+            actions.push(Action::Checkpoint);
         }
         actions
     }
@@ -611,51 +553,6 @@ impl Tracker {
             )
         })
     }
-}
-
-/// A [`WarmBlock`] as JSON: θ, the mode count, the Ritz values and the vectors column by
-/// column.
-fn warm_block_to_json(b: &WarmBlock) -> Value {
-    let cols: Vec<Vec<f64>> = (0..b.x.ncols())
-        .map(|j| (0..b.x.nrows()).map(|i| b.x[(i, j)]).collect())
-        .collect();
-    json!({ "theta": b.theta, "n_modes": b.n_modes, "lambda": b.lambda, "x": cols })
-}
-
-/// The inverse of [`warm_block_to_json`], checked against the model's sizes.
-fn warm_block_from_json(
-    v: &Value,
-    n_dof: usize,
-    n_params: usize,
-) -> Result<WarmBlock, TrackerError> {
-    #[derive(serde::Deserialize)]
-    struct Raw {
-        theta: Vec<f64>,
-        n_modes: usize,
-        lambda: Vec<f64>,
-        x: Vec<Vec<f64>>,
-    }
-    let bad = |why: String| TrackerError::Checkpoint(format!("eigen_block: {why}"));
-    let raw: Raw = serde_json::from_value(v.clone()).map_err(|e| bad(e.to_string()))?;
-    let q = raw.x.len();
-    if raw.theta.len() != n_params
-        || raw.lambda.len() != q
-        || raw.n_modes > q
-        || raw.x.iter().any(|c| c.len() != n_dof)
-    {
-        return Err(bad(format!(
-            "sizes (θ {}, λ {}, modes {}, vectors {q}) do not fit the model ({n_params} parameters, {n_dof} DOFs)",
-            raw.theta.len(),
-            raw.lambda.len(),
-            raw.n_modes
-        )));
-    }
-    Ok(WarmBlock {
-        theta: raw.theta,
-        n_modes: raw.n_modes,
-        lambda: raw.lambda,
-        x: faer::Mat::from_fn(n_dof, q, |i, j| raw.x[j][i]),
-    })
 }
 
 /// The updating data of a validated set: channels mapped onto the model, `null` entries

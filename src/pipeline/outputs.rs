@@ -1,31 +1,29 @@
-//! Message bodies of the tracker's outputs (DESIGN §3.3): alert payloads and their
-//! messages, and the JSON conventions (times in RFC 3339, non-finite numbers as `null`).
+//! The messages of the tracker's alerts (DESIGN §3.3).
 
-use chrono::{DateTime, SecondsFormat, Utc};
-use serde_json::{Value, json};
+use super::alerts::AlertThresholds;
+use crate::contract::AlertLevel;
 
-use super::alerts::Level;
-use super::{ALERT_SCHEMA, Action};
-
+/// The message of a loosening alert of parameter `name`.
 pub(super) fn loosening_message(
     name: &str,
-    level: &str,
+    level: AlertLevel,
     drop: f64,
     confidence: f64,
     inadequate: bool,
 ) -> String {
     let base = match level {
-        "cleared" => format!(
+        AlertLevel::Cleared => format!(
             "{name}: stiffness recovered ({:.0} % below baseline)",
             100.0 * drop
         ),
         _ => format!(
-            "{name}: stiffness {:.0} % below baseline ({level}, confidence {:.3})",
+            "{name}: stiffness {:.0} % below baseline ({}, confidence {:.3})",
             100.0 * drop,
+            level.as_str(),
             confidence
         ),
     };
-    if inadequate && level != "cleared" {
+    if inadequate && level != AlertLevel::Cleared {
         format!(
             "{base}; the model is flagged inadequate, so the loss may be a missing effect, not this bolt"
         )
@@ -34,38 +32,20 @@ pub(super) fn loosening_message(
     }
 }
 
-pub(super) fn alert(structure: &str, time: DateTime<Utc>, body: Value) -> Action {
-    let mut payload = json!({
-        "schema": ALERT_SCHEMA,
-        "structure": structure,
-        "time": rfc3339(time),
-    });
-    if let (Some(p), Value::Object(b)) = (payload.as_object_mut(), body) {
-        p.extend(b);
-    }
-    Action::Publish {
-        topic: "alerts",
-        schema: ALERT_SCHEMA,
-        time,
-        payload,
-    }
-}
-
-/// `null` for a non-finite number (JSON has none).
-pub(super) fn finite(v: f64) -> Option<f64> {
-    v.is_finite().then_some(v)
-}
-
-/// RFC 3339 with milliseconds and `Z`.
-pub fn rfc3339(t: DateTime<Utc>) -> String {
-    t.to_rfc3339_opts(SecondsFormat::Millis, true)
-}
-
-/// Level of a loosening state, as a string.
-pub fn level_name(level: Level) -> &'static str {
-    match level {
-        Level::Normal => "normal",
-        Level::Warning => "warning",
-        Level::Alarm => "alarm",
+/// The message of a model-inadequacy alert.
+pub(super) fn inadequacy_message(
+    level: AlertLevel,
+    epsilon: f64,
+    bound: f64,
+    t: &AlertThresholds,
+) -> String {
+    if level == AlertLevel::Cleared {
+        format!("ε = {epsilon:.1} back within its χ² bound {bound:.1}")
+    } else {
+        format!(
+            "ε = {epsilon:.1} (χ² bound {bound:.1}): ε above its χ² bound, alone or summed over the last {} sets, \
+             on {} successive sets: the model class misses an effect; loosening verdicts are unreliable until diagnosed",
+            t.inadequacy_window, t.persistence
+        )
     }
 }

@@ -4,9 +4,9 @@
 //! verdict under `diagnosis` and names it in its message. Pure: the drivers run it off the
 //! tracking path (the replay's and the daemon's worker threads).
 
-use serde_json::{Value, json};
-
-use super::{ALERT_SCHEMA, DiagnoseRequest, measured_data, rfc3339};
+use super::{DiagnoseRequest, measured_data};
+use crate::contract::alert::NamedEffect;
+use crate::contract::{Alert, AlertDetail, AlertKind, AlertLevel, Schema, Verdict, finite};
 use crate::core::diagnosis::{DiagnosisOptions, diagnose};
 use crate::core::model::Model;
 use crate::core::model::spec::ModelSpec;
@@ -17,7 +17,7 @@ pub fn diagnosis_alert(
     model: &Model,
     shape_weight: f64,
     req: &DiagnoseRequest,
-) -> Value {
+) -> Alert {
     let data = measured_data(&req.set, model, shape_weight);
     let (diagnosis, message) = match diagnose(
         spec,
@@ -26,20 +26,21 @@ pub fn diagnosis_alert(
         |_, _, _| {},
     ) {
         Ok(d) => {
-            let named: Vec<Value> = d
+            let named = d
                 .named
                 .iter()
-                .map(|n| {
-                    json!({
-                        "effect": n.refit.effect,
-                        "location": n.refit.location,
-                        "value": n.refit.value,
-                        "std": if n.refit.std.is_finite() { json!(n.refit.std) } else { Value::Null },
-                        "unit": n.refit.unit,
-                        "likelihood_ratio": n.likelihood_ratio,
-                        "indistinguishable_from": n.indistinguishable_from.iter()
-                            .map(|o| format!("{}@{}", o.effect, o.location)).collect::<Vec<_>>(),
-                    })
+                .map(|n| NamedEffect {
+                    effect: n.refit.effect.into(),
+                    location: n.refit.location.clone(),
+                    value: n.refit.value,
+                    std: finite(n.refit.std),
+                    unit: n.refit.unit.into(),
+                    likelihood_ratio: n.likelihood_ratio,
+                    indistinguishable_from: n
+                        .indistinguishable_from
+                        .iter()
+                        .map(|o| format!("{}@{}", o.effect, o.location))
+                        .collect(),
                 })
                 .collect();
             let message = if d.named.is_empty() {
@@ -83,32 +84,36 @@ pub fn diagnosis_alert(
                 )
             };
             (
-                json!({
-                    "named": named,
-                    "epsilon_before": d.before.epsilon,
-                    "epsilon_after": d.after.epsilon,
-                    "candidates": d.n_candidates,
-                    "threshold": d.threshold,
-                }),
+                Verdict::Found {
+                    named,
+                    epsilon_before: d.before.epsilon,
+                    epsilon_after: d.after.epsilon,
+                    candidates: d.n_candidates,
+                    threshold: d.threshold,
+                },
                 message,
             )
         }
         Err(e) => (
-            json!({"error": e.to_string()}),
+            Verdict::Failed {
+                error: e.to_string(),
+            },
             format!("diagnosis of the model-inadequacy warning failed: {e}"),
         ),
     };
-    json!({
-        "schema": ALERT_SCHEMA,
-        "structure": model.name,
-        "time": rfc3339(req.set.time),
-        "connection": null,
-        "kind": "model-inadequate",
-        "level": "warning",
-        "confidence": null,
-        "epsilon": req.epsilon,
-        "epsilon_bound": req.epsilon_bound,
-        "diagnosis": diagnosis,
-        "message": message,
-    })
+    Alert {
+        schema: Schema::new(),
+        structure: model.name.clone(),
+        time: req.set.time,
+        connection: None,
+        kind: AlertKind::ModelInadequate,
+        level: AlertLevel::Warning,
+        confidence: None,
+        message,
+        detail: AlertDetail::Inadequacy {
+            epsilon: req.epsilon,
+            epsilon_bound: req.epsilon_bound,
+            diagnosis: Some(diagnosis),
+        },
+    }
 }

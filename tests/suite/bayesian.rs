@@ -265,6 +265,10 @@ fn both_solvers_recover_noise_free_lab_frame() {
 /// too small (the paper's own finding, §2.7: the truncation drops exactly the weak
 /// directions that carry θ's variance), so it is reported, not asserted.
 #[test]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow tier: cargo test --features slow-tests"
+)]
 fn sampling_std_matches_monte_carlo_lab_frame() {
     let model = load_model("lab-frame");
     let truth = LAB_TRUTH;

@@ -24,6 +24,10 @@ const TRUTH: [f64; 17] = [
 /// 0.985 (MC std / mean σ = 0.86) by chance; over 1000 it is 0.952 (ratio 0.98). Measured
 /// (1000 draws): fractions 0.937–0.964, MC std / mean σ 0.970–1.039.
 #[test]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow tier: cargo test --features slow-tests"
+)]
 fn covariance_is_calibrated_by_monte_carlo() {
     let model = load_model("lab-frame");
     assert_eq!(model.n_params(), TRUTH.len());

@@ -6,7 +6,8 @@
 use boltwatch::core::modal::{DenseEigen, EigenSolver, SparseEigen};
 use boltwatch::core::model::Model;
 use boltwatch::core::model::hex20::{self, Material};
-use boltwatch::core::model::solid::{BoxMesh, solid_cantilever};
+use boltwatch::core::model::mesh::BoxMesh;
+use boltwatch::core::model::solid::solid_cantilever;
 use faer::linalg::solvers::Solve;
 use faer::{Mat, Side};
 
@@ -399,6 +400,10 @@ fn the_relaxed_sparse_solve_keeps_its_targets() {
 /// times are printed (the figures in the README come from a release build), never
 /// asserted.
 #[test]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow tier: cargo test --features slow-tests"
+)]
 fn modes_match_scipy_eigsh_on_the_exported_four_bay_matrices() {
     use std::process::Command;
     use std::time::Instant;
@@ -496,6 +501,10 @@ print(json.dumps((np.sqrt(lam) / (2 * np.pi)).tolist()))
 /// upper bound, σ(θ4) ≈ 1.7e6, while θ1–θ3 converge (measured: 7 iterations, θ1–θ3 within
 /// 0.7σ).
 #[test]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow tier: cargo test --features slow-tests"
+)]
 fn mode_matching_recovers_the_four_bay_truth() {
     use boltwatch::core::updating::{AtBound, Evaluator, ModeMatching, ModeMatchingOptions};
     let model = four_bay();
@@ -600,6 +609,10 @@ fn sparse_jacobian_matches_central_differences() {
 /// start converges (one stage) within 20 iterations, at a positive definite reduced
 /// Hessian; the truth recovered to 1e-4 from noise-free data, within 3σ from noisy data.
 #[test]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow tier: cargo test --features slow-tests"
+)]
 fn bayesian_newton_converges_on_a_coarse_four_bay_frame() {
     use boltwatch::core::updating::bayesian::{BayesProblem, BayesSettings, BayesSolver};
     let text = four_bay_text().replace("divisions = [28, 1, 3]", "divisions = [14, 1, 1]");

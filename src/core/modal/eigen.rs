@@ -1,47 +1,16 @@
-//! The eigen-solver interface and a dense implementation for small models.
-//!
-//! [`DenseEigen`] solves `K φ = λ M φ` in its inverse form: with the Cholesky factor
-//! `K = L Lᵀ`, the lowest modes are the dominant eigenvalues `μ = 1/λ` of the symmetric
-//! `B = L⁻¹ M L⁻ᵀ`, `φ ∝ L⁻ᵀ z` (Golub & Van Loan, *Matrix Computations*, 4th ed., §8.7.1,
-//! with the roles of the two matrices exchanged). Reducing with `K` rather than `M` matters
-//! here: the frame's member-end rotations have tiny rotary mass, so `L_M⁻¹ K L_M⁻ᵀ` spans
-//! ~10⁸ and its lowest eigenvectors come out with residuals near 1 (seen on the lab frame).
-//! The reduction still loses a few digits to the conditioning of `K`, so the wanted modes
-//! plus a few guard modes are refined by one step of block inverse iteration,
-//! `X = K⁻¹ M Φ`, and a Rayleigh–Ritz solve on `span X` (Bathe, *Finite Element
-//! Procedures*, §11.6), which works on `K` and `M` directly and restores residuals
-//! `‖Kφ − λMφ‖/‖Kφ‖` near machine precision. Eigenvectors are mass-normalized. Only the
-//! wanted eigenvectors of `B` are computed: by a Krylov–Schur iteration when they are few
-//! against its size (a few hundred DOFs and up), below that by tridiagonalization and
-//! inverse iteration ([`super::tridiag`]).
-//!
-//! **Warm solves** (a tracker's, [`EigenSolver::solve_warm`]): from the Ritz block of the
-//! last solve at a nearby θ, subspace iteration with the sparse Cholesky factor of `K(θ)`
-//! (three M-orthonormalized steps, then Rayleigh–Ritz steps until the residuals of the
-//! modes in use are below [`STRICT_RESIDUAL`] and of the others below [`LOOSE_RESIDUAL`]),
-//! then a Sturm count (inertia of `K − σM`) proving no mode slipped past the block. Any
-//! failure falls back to the cold solve. Lab frame: 0.33 ms against 1.12 ms cold
-//! (`cargo bench --bench update`, `lab_frame_evaluate_warm` / `lab_frame_evaluate`).
+//! The eigen-solver interface ([`EigenSolver`]): the eigenpairs it returns, the warm-start
+//! block a tracker's solves carry from one θ to the next, and the residual targets.
+//! Implementations: [`super::dense::DenseEigen`] for small models and
+//! [`super::krylov::SparseEigen`] for large ones.
 
-use faer::dyn_stack::{MemBuffer, MemStack};
-use faer::linalg::cholesky::ldlt::factor as ldlt_factor;
-use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
-use faer::linalg::solvers::{Llt, Solve};
-use faer::matrix_free::eigen::{
-    PartialEigenParams, partial_self_adjoint_eigen, partial_self_adjoint_eigen_scratch,
-};
-use faer::sparse::SparseColMatRef;
-use faer::sparse::linalg::cholesky::{SymbolicCholesky, SymbolicCholeskyRaw};
-use faer::sparse::linalg::solvers::{Llt as SparseLlt, SymbolicLlt};
-use faer::{Col, Mat, MatMut, Par, Side};
+use faer::Mat;
 
 use super::ModalError;
-use super::tridiag::PartialSymEvd;
 use crate::core::model::Model;
 
 /// Modes computed beyond those asked for, so the Rayleigh–Ritz step converges the wanted
 /// ones fast (error factor λ_q / λ_{q+guard+1} per step).
-const GUARD_MODES: usize = 8;
+pub(super) const GUARD_MODES: usize = 8;
 
 /// The lowest eigenpairs, ascending, mass-normalized.
 #[derive(Debug, Clone)]
@@ -135,37 +104,15 @@ pub const LOOSE_RESIDUAL: f64 = 1e-3;
 /// set's 4σ jumps of its softest connections still start warm (at 0.3, 1.5 % of the lab
 /// frame's healthy sets fell back to a cold solve); the residual and Sturm checks keep any
 /// warm result exact.
-const WARM_MAX_LOG_CHANGE: f64 = 0.7;
+pub(super) const WARM_MAX_LOG_CHANGE: f64 = 0.7;
 
 /// Inverse-iteration steps a warm solve may take before giving up (and solving cold).
-const WARM_MAX_STEPS: usize = 8;
+pub(super) const WARM_MAX_STEPS: usize = 8;
 
 /// Steps of a warm solve before the first Rayleigh–Ritz and residual check: on the lab
 /// frame the strict residuals pass after four solves in most tracked sets (each divides
 /// the error of mode 9 by about λ₂₈/λ₉ ≈ 27).
-const WARM_PLAIN_STEPS: usize = 3;
-
-/// Dense solver (for models up to a few thousand DOFs).
-pub struct DenseEigen {
-    m: Mat<f64>,
-    k: Mat<f64>,
-    partial: PartialSymEvd,
-    /// Keep the Ritz block of each solve and start the next from it (see [`WarmBlock`]).
-    warm: bool,
-    block: Option<WarmBlock>,
-    /// `K − σM` of the Sturm count: the sparse `LDLᵀ` (symbolic once, AMD ordering), or
-    /// in place in a dense matrix when that symbolic factorization is supernodal.
-    sturm_symbolic: SymbolicCholesky<usize>,
-    sturm_values: Vec<f64>,
-    sturm_l: Vec<f64>,
-    sturm_mem: MemBuffer,
-    shifted: Mat<f64>,
-    /// Sparse `K(θ)` on the model's union pattern and its symbolic Cholesky factorization
-    /// (warm solves: a few nonzeros per row make the solves several times cheaper).
-    k_values: Vec<f64>,
-    k_symbolic: SymbolicLlt<usize>,
-    ldlt_mem: MemBuffer,
-}
+pub(super) const WARM_PLAIN_STEPS: usize = 3;
 
 /// The Ritz block of the last solve (the wanted modes and the guard modes), from which a
 /// warm solve at a nearby θ starts.
@@ -192,388 +139,21 @@ impl WarmBlock {
     }
 }
 
-impl DenseEigen {
-    /// Densifies `M` once; `M` does not depend on θ.
-    pub fn new(model: &Model) -> Result<Self, ModalError> {
-        let m = model.mass_dense();
-        m.llt(Side::Lower)
-            .map_err(|_| ModalError::MassNotPositiveDefinite)?;
-        let n = model.n_dof();
-        let sturm_symbolic = super::union_symbolic_cholesky(model)?;
-        Ok(Self {
-            m,
-            k: Mat::zeros(n, n),
-            partial: PartialSymEvd::new(n, n),
-            warm: false,
-            block: None,
-            sturm_l: vec![0.0; sturm_symbolic.len_val()],
-            sturm_mem: MemBuffer::new(
-                sturm_symbolic.factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Default::default()),
-            ),
-            sturm_symbolic,
-            sturm_values: vec![0.0; model.union_pattern().pattern.val().len()],
-            shifted: Mat::zeros(n, n),
-            k_values: vec![0.0; model.union_pattern().pattern.val().len()],
-            k_symbolic: SymbolicLlt::try_new(model.union_pattern().pattern.symbolic(), Side::Lower)
-                .map_err(|e| ModalError::Factorization(format!("{e:?}")))?,
-            ldlt_mem: MemBuffer::new(ldlt_factor::cholesky_in_place_scratch::<f64>(
-                n,
-                Par::Seq,
-                Default::default(),
-            )),
-        })
-    }
-}
-
-impl EigenSolver for DenseEigen {
-    fn solve(
-        &mut self,
-        model: &Model,
-        theta: &[f64],
-        n_modes: usize,
-    ) -> Result<EigenPairs, ModalError> {
-        let n = model.n_dof();
-        check_mode_count(n_modes, n)?;
-        let q = (n_modes + GUARD_MODES).min(n);
-        model.stiffness_dense_into(theta, self.k.as_mut());
-        let llt: Llt<f64> = self
-            .k
-            .llt(Side::Lower)
-            .map_err(|_| ModalError::NotPositive {
-                index: 1,
-                value: f64::NAN,
-            })?;
-        let l = llt.L();
-
-        // B = L⁻¹ M L⁻ᵀ by two triangular solves; its q largest eigenpairs.
-        let mut c = self.m.clone();
-        l.solve_lower_triangular_in_place(c.as_mut());
-        let mut b = c.transpose().to_owned();
-        l.solve_lower_triangular_in_place(b.as_mut());
-        let mut phi0 = top_eigenvectors(&b, q, &mut self.partial)?;
-        l.transpose().solve_upper_triangular_in_place(phi0.as_mut());
-
-        let mphi0 = model.mass() * &phi0;
-        let mut solve = |b: MatMut<'_, f64>| llt.solve_in_place(b);
-        let RitzStep { lambda, phi: x, .. } = inverse_iteration_step(&mut solve, model, mphi0, 0)?;
-        check_positive(&lambda[..n_modes])?;
-        let block = WarmBlock {
-            theta: theta.to_vec(),
-            n_modes,
-            lambda,
-            x,
-        };
-        let pairs = block.pairs();
-        if self.warm {
-            self.block = Some(block);
-        }
-        Ok(pairs)
-    }
-
-    fn set_warm(&mut self, on: bool) {
-        self.warm = on;
-        if !on {
-            self.block = None;
-        }
-    }
-
-    fn warm_block(&self) -> Option<&WarmBlock> {
-        self.block.as_ref()
-    }
-
-    fn set_warm_block(&mut self, block: Option<WarmBlock>) {
-        self.block = block;
-    }
-
-    /// Subspace iteration from the last block: block inverse iteration and Rayleigh–Ritz
-    /// steps (`inverse_iteration_step`) until the residuals hold, then a Sturm count —
-    /// the inertia of `K − σM` (`LDLᵀ`, Sylvester's law) — with σ in the widest gap above
-    /// the wanted modes, so that no mode slipped past the block (Ritz values bound the
-    /// eigenvalues from above, so `k` Ritz values below σ and `k` negative pivots mean the
-    /// lowest `k` modes are all there).
-    fn solve_warm(
-        &mut self,
-        model: &Model,
-        theta: &[f64],
-        n_modes: usize,
-        strict: usize,
-    ) -> Result<Option<TargetedPairs>, ModalError> {
-        let Some(block) = self.block.as_ref().filter(|b| {
-            self.warm
-                && b.theta.len() == theta.len()
-                && b.x.ncols() >= n_modes + GUARD_MODES.min(b.x.nrows() - n_modes)
-                && b.theta
-                    .iter()
-                    .zip(theta)
-                    .all(|(a, t)| (t / a).ln().abs() <= WARM_MAX_LOG_CHANGE)
-        }) else {
-            return Ok(None);
-        };
-        let n = model.n_dof();
-        check_mode_count(n_modes, n)?;
-        model.shifted_stiffness_values(theta, 0.0, &mut self.k_values);
-        let k_sparse =
-            SparseColMatRef::new(model.union_pattern().pattern.symbolic(), &self.k_values);
-        let Ok(llt) =
-            SparseLlt::try_new_with_symbolic(self.k_symbolic.clone(), k_sparse, Side::Lower)
-        else {
-            return Ok(None);
-        };
-        let mut solve = |b: MatMut<'_, f64>| llt.solve_in_place(b);
-        let strict = strict.min(n_modes);
-        let mut mphi = model.mass() * &block.x;
-        // The first solves only advance the subspace (K⁻¹M)ᵏ span Φ, kept M-orthonormal;
-        // the Rayleigh–Ritz steps that follow extract its best pairs from the same subspace
-        // (the span, hence the result, is that of a Rayleigh–Ritz at every step, at a
-        // fraction of the cost).
-        for _ in 0..WARM_PLAIN_STEPS {
-            let Some(mx) = orthonormal_inverse_iteration(&mut solve, model, mphi) else {
-                return Ok(None);
-            };
-            mphi = mx;
-        }
-        let mut residual = vec![f64::INFINITY; n_modes];
-        let mut done = false;
-        for _ in WARM_PLAIN_STEPS..WARM_MAX_STEPS {
-            let RitzStep {
-                lambda,
-                phi: next,
-                k_phi: kphi,
-                m_phi: next_mphi,
-            } = inverse_iteration_step(&mut solve, model, mphi, n_modes)?;
-            let phi = next;
-            mphi = next_mphi;
-            // ρ_k = ‖Kφ − λMφ‖ / ‖Kφ‖ for the wanted modes.
-            for k in 0..n_modes {
-                let (mut num, mut den) = (0.0, 0.0);
-                for i in 0..n {
-                    num += (kphi[(i, k)] - lambda[k] * mphi[(i, k)]).powi(2);
-                    den += kphi[(i, k)].powi(2);
-                }
-                residual[k] = (num / den).sqrt();
-            }
-            if residual[..strict].iter().all(|&r| r <= STRICT_RESIDUAL)
-                && residual.iter().all(|&r| r <= LOOSE_RESIDUAL)
-            {
-                done = true;
-                let q = lambda.len();
-                // Sturm count in the widest gap among the guard modes.
-                let Some(k) = (n_modes..q).max_by(|&a, &b| {
-                    (lambda[a] / lambda[a - 1]).total_cmp(&(lambda[b] / lambda[b - 1]))
-                }) else {
-                    return Ok(None);
-                };
-                let sigma = (lambda[k - 1] * lambda[k]).sqrt();
-                let Some(below) = self.count_below(model, theta, sigma) else {
-                    return Ok(None);
-                };
-                if below != k || check_positive(&lambda[..n_modes]).is_err() {
-                    return Ok(None);
-                }
-                self.block = Some(WarmBlock {
-                    theta: theta.to_vec(),
-                    n_modes,
-                    lambda,
-                    x: phi,
-                });
-                break;
+/// Deterministic sign: the largest-magnitude entry of each column is positive.
+pub(crate) fn sign_convention(phi: &mut Mat<f64>) {
+    for k in 0..phi.ncols() {
+        let mut best = 0.0_f64;
+        for i in 0..phi.nrows() {
+            if phi[(i, k)].abs() > best.abs() {
+                best = phi[(i, k)];
             }
         }
-        if !done {
-            return Ok(None);
-        }
-        let pairs = self.block.as_ref().expect("set above").pairs();
-        Ok(Some((pairs, residual)))
-    }
-}
-
-impl DenseEigen {
-    /// The number of eigenvalues below σ: the negative pivots of `K − σM = LDLᵀ` (Sylvester's
-    /// law of inertia), for the `K(θ)` whose union-pattern values are in `self.k_values`
-    /// (the warm solve's; the dense fallback builds `K(θ)` from θ). `None` if the
-    /// unpivoted factorization meets a zero pivot (σ on an eigenvalue).
-    fn count_below(&mut self, model: &Model, theta: &[f64], sigma: f64) -> Option<usize> {
-        // Sparse when the symbolic factorization is simplicial (D is then the first entry
-        // of each column of the factor); the inertia does not depend on the fill-reducing
-        // permutation.
-        if let SymbolicCholeskyRaw::Simplicial(simplicial) = self.sturm_symbolic.raw() {
-            self.sturm_values.copy_from_slice(&self.k_values);
-            model.subtract_mass_values(sigma, &mut self.sturm_values);
-            let a =
-                SparseColMatRef::new(model.union_pattern().pattern.symbolic(), &self.sturm_values);
-            self.sturm_symbolic
-                .factorize_numeric_ldlt(
-                    &mut self.sturm_l,
-                    a,
-                    Side::Lower,
-                    LdltRegularization::default(),
-                    Par::Seq,
-                    MemStack::new(&mut self.sturm_mem),
-                    Default::default(),
-                )
-                .ok()?;
-            let col_ptr = simplicial.col_ptr();
-            let n = model.n_dof();
-            return Some((0..n).filter(|&j| self.sturm_l[col_ptr[j]] < 0.0).count());
-        }
-        self.count_below_dense(model, theta, sigma)
-    }
-
-    /// [`DenseEigen::count_below`] by a dense `LDLᵀ`.
-    fn count_below_dense(&mut self, model: &Model, theta: &[f64], sigma: f64) -> Option<usize> {
-        model.stiffness_dense_into(theta, self.shifted.as_mut());
-        let m = model.mass();
-        let sym = m.symbolic();
-        for j in 0..m.ncols() {
-            for (&i, &v) in sym.row_idx_of_col_raw(j).iter().zip(m.val_of_col(j)) {
-                self.shifted[(i, j)] -= sigma * v;
+        if best < 0.0 {
+            for i in 0..phi.nrows() {
+                phi[(i, k)] = -phi[(i, k)];
             }
         }
-        ldlt_factor::cholesky_in_place(
-            self.shifted.as_mut(),
-            Default::default(),
-            Par::Seq,
-            MemStack::new(&mut self.ldlt_mem),
-            Default::default(),
-        )
-        .ok()?;
-        let n = self.shifted.nrows();
-        Some((0..n).filter(|&i| self.shifted[(i, i)] < 0.0).count())
     }
-}
-
-/// One block inverse iteration `X = K⁻¹ M Φ0`, made M-orthonormal (columns scaled to unit
-/// M-norm, then Cholesky QR in the M inner product): `M X`, all the next step needs.
-/// `None` if the Gram matrix is not positive definite (the block lost its rank).
-fn orthonormal_inverse_iteration(
-    solve: &mut dyn FnMut(MatMut<'_, f64>),
-    model: &Model,
-    mphi0: Mat<f64>,
-) -> Option<Mat<f64>> {
-    let (x, _, mut mx) = solve_m_normalized(solve, model, mphi0);
-    let mut g = x.transpose() * &mx;
-    symmetrize(&mut g);
-    let l = g.llt(Side::Lower).ok()?;
-    // M X ← M X L⁻ᵀ: solve L Yᵀ = (M X)ᵀ on the transposed view, in place.
-    l.L()
-        .solve_lower_triangular_in_place(mx.as_mut().transpose_mut());
-    Some(mx)
-}
-
-/// `X = K⁻¹ M Φ0` with its columns scaled to unit M-norm, returned with `K X` (= `M Φ0`,
-/// scaled alike) and `M X`. `solve` applies `K⁻¹` in place; `mphi0` is `M Φ0`.
-fn solve_m_normalized(
-    solve: &mut dyn FnMut(MatMut<'_, f64>),
-    model: &Model,
-    mphi0: Mat<f64>,
-) -> (Mat<f64>, Mat<f64>, Mat<f64>) {
-    let (n, q) = (mphi0.nrows(), mphi0.ncols());
-    let mut x = mphi0.clone();
-    solve(x.as_mut());
-    let mut kx = mphi0;
-    let mut mx = model.mass() * &x;
-    for j in 0..q {
-        let s = 1.0 / (x.col(j).transpose() * mx.col(j)).sqrt();
-        for i in 0..n {
-            x[(i, j)] *= s;
-            kx[(i, j)] *= s;
-            mx[(i, j)] *= s;
-        }
-    }
-    (x, kx, mx)
-}
-
-/// One block inverse iteration `X = K⁻¹ M Φ0` (columns scaled to unit M-norm) and a
-/// Rayleigh–Ritz solve `(Xᵀ K X) a = λ (Xᵀ M X) a` on its span: all Ritz values ascending
-/// and the mass-normalized Ritz vectors `X a`, with `M X a` for all of them (the next
-/// step's `M Φ0`) and `K X a` for the first `n_k` (residuals). `solve` applies `K⁻¹` in
-/// place; `mphi0` is `M Φ0`. The products with M use its sparse form.
-fn inverse_iteration_step(
-    solve: &mut dyn FnMut(MatMut<'_, f64>),
-    model: &Model,
-    mphi0: Mat<f64>,
-    n_k: usize,
-) -> Result<RitzStep, ModalError> {
-    let q = mphi0.ncols();
-    let (x, kx, mx) = solve_m_normalized(solve, model, mphi0);
-    let mut kr = x.transpose() * &kx;
-    let mut mr = x.transpose() * &mx;
-    symmetrize(&mut kr);
-    symmetrize(&mut mr);
-    let lr = mr.llt(Side::Lower).map_err(|_| {
-        ModalError::EigenFailed("Rayleigh–Ritz mass is not positive definite".into())
-    })?;
-    let lrl = lr.L();
-    lrl.solve_lower_triangular_in_place(kr.as_mut());
-    let mut cr = kr.transpose().to_owned();
-    lrl.solve_lower_triangular_in_place(cr.as_mut());
-    symmetrize(&mut cr);
-    let evr = cr
-        .self_adjoint_eigen(Side::Lower)
-        .map_err(|e| ModalError::EigenFailed(format!("{e:?}")))?;
-    let mut a = evr.U().to_owned();
-    lrl.transpose().solve_upper_triangular_in_place(a.as_mut());
-    let s = evr.S().column_vector();
-    Ok(RitzStep {
-        lambda: (0..q).map(|k| s[k]).collect(),
-        phi: &x * &a,
-        k_phi: &kx * a.subcols(0, n_k.min(q)),
-        m_phi: &mx * &a,
-    })
-}
-
-/// Ritz values (ascending) and vectors of one [`inverse_iteration_step`], with the vectors'
-/// products with `M` and (the first few) with `K`, from those of the iterate without
-/// another product.
-struct RitzStep {
-    lambda: Vec<f64>,
-    phi: Mat<f64>,
-    k_phi: Mat<f64>,
-    m_phi: Mat<f64>,
-}
-
-/// faer's Krylov–Schur subspace is at least this large.
-const PARTIAL_MIN_SUBSPACE: usize = 64;
-
-/// The eigenvectors of the `q` largest eigenvalues of the symmetric positive definite `b`.
-/// When its subspace is small against the size (under a quarter), a Krylov–Schur iteration
-/// (faer's `partial_self_adjoint_eigen`) on `b` costs `O(n²)` per step instead of the
-/// `O(n³)` of a full decomposition; below that the full decomposition is faster (lab frame,
-/// 27 vectors of 142: 1.65 ms per solve with it, 2.22 ms with Krylov–Schur); its tolerance is loose because the block inverse iteration and
-/// Rayleigh–Ritz step that follow restore full accuracy. Falls back to the full
-/// decomposition if fewer than `q` pairs converge.
-fn top_eigenvectors(
-    b: &Mat<f64>,
-    q: usize,
-    partial: &mut PartialSymEvd,
-) -> Result<Mat<f64>, ModalError> {
-    let n = b.nrows();
-    // faer's Krylov–Schur needs its maximal subspace, max(64, 2q), smaller than n.
-    if 4 * PARTIAL_MIN_SUBSPACE.max(2 * q) < n {
-        let params = PartialEigenParams::default();
-        let mut mem = MemBuffer::new(partial_self_adjoint_eigen_scratch(b, q, Par::Seq, params));
-        let mut vecs = Mat::zeros(n, q);
-        let mut vals = vec![0.0; q];
-        // ‖b‖ ≤ trace(b) for a positive definite b.
-        let trace: f64 = (0..n).map(|i| b[(i, i)]).sum();
-        let v0 = Col::from_fn(n, |i| 1.0 + (i % 7) as f64 / 7.0);
-        let info = partial_self_adjoint_eigen(
-            vecs.as_mut(),
-            &mut vals,
-            b,
-            v0.as_ref(),
-            1e-12 * trace,
-            Par::Seq,
-            MemStack::new(&mut mem),
-            params,
-        );
-        if info.n_converged_eigen >= q {
-            let mut order: Vec<usize> = (0..q).collect();
-            order.sort_by(|&i, &j| vals[j].total_cmp(&vals[i]));
-            return Ok(Mat::from_fn(n, q, |i, j| vecs[(i, order[j])]));
-        }
-    }
-    Ok(partial.largest(b, q)?.1)
 }
 
 pub(crate) fn symmetrize(a: &mut Mat<f64>) {
@@ -605,57 +185,5 @@ pub(crate) fn check_positive(lambda: &[f64]) -> Result<(), ModalError> {
             value: lambda[k],
         }),
         None => Ok(()),
-    }
-}
-
-/// Deterministic sign: the largest-magnitude entry of each column is positive.
-pub(crate) fn sign_convention(phi: &mut Mat<f64>) {
-    for k in 0..phi.ncols() {
-        let mut best = 0.0_f64;
-        for i in 0..phi.nrows() {
-            if phi[(i, k)].abs() > best.abs() {
-                best = phi[(i, k)];
-            }
-        }
-        if best < 0.0 {
-            for i in 0..phi.nrows() {
-                phi[(i, k)] = -phi[(i, k)];
-            }
-        }
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// The Sturm count of the warm solve: with σ between consecutive eigenvalues of the
-    /// lab frame (from a cold solve), the number of negative pivots of `K − σM` is the
-    /// number of eigenvalues below σ.
-    #[test]
-    fn sturm_count_is_the_number_of_eigenvalues_below_the_shift() {
-        let model = crate::core::model::lab_frame();
-        let theta = model.nominal_theta();
-        let mut solver = DenseEigen::new(&model).unwrap();
-        let pairs = solver.solve(&model, &theta, 30).unwrap();
-        // The lab frame takes the sparse path; the dense one must agree.
-        assert!(matches!(
-            solver.sturm_symbolic.raw(),
-            SymbolicCholeskyRaw::Simplicial(_)
-        ));
-        model.shifted_stiffness_values(&theta, 0.0, &mut solver.k_values);
-        for k in [1, 5, 9, 19, 27, 29] {
-            let sigma = (pairs.lambda[k - 1] * pairs.lambda[k]).sqrt();
-            assert_eq!(
-                solver.count_below(&model, &theta, sigma),
-                Some(k),
-                "σ above mode {k}"
-            );
-            assert_eq!(solver.count_below_dense(&model, &theta, sigma), Some(k));
-        }
-        assert_eq!(
-            solver.count_below(&model, &theta, 0.5 * pairs.lambda[0]),
-            Some(0)
-        );
     }
 }

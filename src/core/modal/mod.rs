@@ -2,13 +2,15 @@
 //! interface ([`EigenSolver`]), eigenvalue and exact eigenvector sensitivities (Nelson's
 //! method), MAC (26) and mode pairing (29).
 
+pub mod dense;
 pub mod eigen;
 pub mod krylov;
 pub mod mac;
 pub mod sensitivity;
 pub mod tridiag;
 
-pub use eigen::{DenseEigen, EigenPairs, EigenSolver};
+pub use dense::DenseEigen;
+pub use eigen::{EigenPairs, EigenSolver};
 pub use krylov::SparseEigen;
 pub use mac::{mac, pair_modes};
 pub use sensitivity::Nelson;

@@ -3,7 +3,8 @@
 use std::collections::HashMap;
 
 use super::element::{Section, frame_element, geometric_element};
-use super::sparse::{Accumulator, Csc, UnionPattern};
+use super::finish::{check_positive, finish};
+use super::sparse::Accumulator;
 use super::spec::{MemberSpec, ModelSpec};
 use super::{Channel, Connection, Model, ModelError, Parameter, ParameterKind};
 
@@ -27,17 +28,6 @@ fn unknown(field: impl Into<String>, what: &'static str, name: &str) -> ModelErr
         field: field.into(),
         what,
         name: name.to_string(),
-    }
-}
-
-pub(super) fn check_positive(field: String, v: f64) -> Result<(), ModelError> {
-    if v.is_finite() && v > 0.0 {
-        Ok(())
-    } else {
-        Err(invalid(
-            field,
-            format!("must be a finite number > 0, got {v}"),
-        ))
     }
 }
 
@@ -89,30 +79,8 @@ impl Dofs {
     }
 }
 
-/// Assembles the model; every failure names the offending entry.
+/// Assembles a frame model; every failure names the offending entry.
 pub(super) fn assemble(spec: &ModelSpec) -> Result<Model, ModelError> {
-    if let Some(solid) = &spec.solid_frame {
-        let frame_entries = [
-            ("materials", spec.materials.len()),
-            ("sections", spec.sections.len()),
-            ("nodes", spec.nodes.len()),
-            ("joints", spec.joints.len()),
-            ("members", spec.members.len()),
-            ("supports", spec.supports.len()),
-            ("connections", spec.connections.len()),
-            ("masses", spec.masses.len()),
-            ("springs", spec.springs.len()),
-            ("parameters", spec.parameters.len()),
-            ("channels", spec.channels.len()),
-        ];
-        if let Some((key, _)) = frame_entries.iter().find(|(_, n)| *n > 0) {
-            return Err(invalid(
-                key.to_string(),
-                "a [solid_frame] model generates its own structure; remove the frame entries",
-            ));
-        }
-        return super::solid::assemble(&spec.name, solid, &spec.bayesian);
-    }
     let nodes = index_names("node", spec.nodes.iter().map(|n| n.name.as_str()))?;
     let members = index_names("member", spec.members.iter().map(|m| m.name.as_str()))?;
     let materials = index_names("material", spec.materials.iter().map(|m| m.name.as_str()))?;
@@ -495,61 +463,6 @@ pub(super) fn assemble(spec: &ModelSpec) -> Result<Model, ModelError> {
         channels,
         spec.bayesian.clone(),
     )
-}
-
-/// The common end of every assembly: takes `K0`, the `K_l` and `M` (in that order), checks
-/// that every DOF has mass (a DOF without makes `M` singular; name it rather than fail in
-/// the eigen solver) and forms the union pattern.
-pub(super) fn finish(
-    name: &str,
-    labels: Vec<String>,
-    mats: Vec<Csc>,
-    parameters: Vec<Parameter>,
-    connections: Vec<Connection>,
-    channels: Vec<Channel>,
-    bayesian: super::spec::BayesSpec,
-) -> Result<Model, ModelError> {
-    let n = labels.len();
-    if n == 0 {
-        return Err(invalid("nodes", "the model has no free DOF"));
-    }
-    let p = parameters.len();
-    debug_assert_eq!(mats.len(), p + 2);
-    let m = mats[p + 1].clone();
-    let mut diag = vec![0.0; n];
-    {
-        let s = m.symbolic();
-        for (j, d) in diag.iter_mut().enumerate() {
-            for (&i, &v) in s.row_idx_of_col_raw(j).iter().zip(m.val_of_col(j)) {
-                if i == j {
-                    *d = v;
-                }
-            }
-        }
-    }
-    if let Some(j) = diag.iter().position(|&v| v <= 0.0) {
-        return Err(ModelError::MasslessDof {
-            dof: labels[j].clone(),
-        });
-    }
-    let refs: Vec<_> = mats.iter().collect();
-    let union = UnionPattern::new(n, &refs);
-    let mut it = mats.into_iter();
-    let k0 = it.next().expect("K0 is always assembled");
-    let k_params: Vec<_> = it.by_ref().take(p).collect();
-    Ok(Model {
-        name: name.to_string(),
-        dof_labels: labels,
-        k0,
-        k_params,
-        m,
-        parameters,
-        connections,
-        channels,
-        union,
-        reordered: Default::default(),
-        bayesian,
-    })
 }
 
 fn section_of(

@@ -9,7 +9,9 @@
 
 mod assemble;
 pub mod element;
+mod finish;
 pub mod hex20;
+pub mod mesh;
 pub mod solid;
 pub mod sparse;
 pub mod spec;
@@ -118,7 +120,13 @@ impl Model {
 
     /// Checks a parsed model file and assembles it.
     pub fn from_spec(spec: &ModelSpec) -> Result<Self, ModelError> {
-        assemble::assemble(spec)
+        match &spec.solid_frame {
+            Some(solid) => {
+                spec.check_no_frame_entries()?;
+                solid::assemble(&spec.name, solid, &spec.bayesian)
+            }
+            None => assemble::assemble(spec),
+        }
     }
 
     pub fn n_dof(&self) -> usize {

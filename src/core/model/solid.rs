@@ -36,138 +36,13 @@
 //! Beams are `B1…` (bottom chord, left to right), `T1…` (top chord) and `V1…` (verticals);
 //! couplers `KB1…` and `KT1…`.
 
-use serde::Deserialize;
-
 use super::hex20::{self, Material};
 use faer::sparse::SymbolicSparseColMat;
 
+use super::mesh::BoxMesh;
 use super::sparse::{Accumulator, Csc};
+use super::spec::{PARAMETERS, SolidFrameSpec};
 use super::{Channel, Connection, Model, ModelError, Parameter, ParameterKind};
-
-/// `[solid_frame]` in a model file.
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct SolidFrameSpec {
-    /// Bays per chord (≥ 2).
-    pub bays: usize,
-    pub beam: BeamSpec,
-    pub coupler: CouplerSpec,
-    pub material: SolidMaterialSpec,
-    /// `k = factor · 4EI/L` of the connection springs (50 in the paper).
-    pub spring_factor: f64,
-}
-
-/// A beam: `length` (m) along its axis, `in_plane` (m) across it in the frame plane (the
-/// depth of in-plane bending), `out_of_plane` (m) through the plane; `divisions` = elements
-/// along the length, `in_plane` and `out_of_plane`.
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct BeamSpec {
-    pub length: f64,
-    pub in_plane: f64,
-    pub out_of_plane: f64,
-    pub divisions: [usize; 3],
-}
-
-/// A coupler: a square block of side `size` (m) in the frame plane and the beams'
-/// `out_of_plane` size through it, with `divisions` elements along each in-plane side (and
-/// the beams' through the plane).
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct CouplerSpec {
-    pub size: f64,
-    pub divisions: usize,
-}
-
-#[allow(non_snake_case)]
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct SolidMaterialSpec {
-    pub E: f64,
-    pub nu: f64,
-    pub rho: f64,
-}
-
-/// The parameter names, in order.
-pub const PARAMETERS: [&str; 4] = ["ip-left", "ip-right", "ip-vertical", "op"];
-
-/// A structured mesh of 20-node hexahedra on an axis-aligned box. Nodes live on the
-/// "half grid" `(2·div + 1)` points per axis, where a point is a node when at most one of
-/// its indices is odd (a corner: none; an edge midpoint: one).
-#[derive(Debug, Clone)]
-pub struct BoxMesh {
-    pub origin: [f64; 3],
-    pub size: [f64; 3],
-    pub div: [usize; 3],
-    /// Node number of every half-grid point (`usize::MAX` where there is none).
-    grid: Vec<usize>,
-    /// Half-grid index of every node.
-    pub nodes: Vec<[usize; 3]>,
-}
-
-impl BoxMesh {
-    pub fn new(origin: [f64; 3], size: [f64; 3], div: [usize; 3]) -> Self {
-        let g = div.map(|d| 2 * d + 1);
-        let mut grid = vec![usize::MAX; g[0] * g[1] * g[2]];
-        let mut nodes = Vec::new();
-        for k in 0..g[2] {
-            for j in 0..g[1] {
-                for i in 0..g[0] {
-                    if (i % 2) + (j % 2) + (k % 2) <= 1 {
-                        grid[i + g[0] * (j + g[1] * k)] = nodes.len();
-                        nodes.push([i, j, k]);
-                    }
-                }
-            }
-        }
-        Self {
-            origin,
-            size,
-            div,
-            grid,
-            nodes,
-        }
-    }
-
-    /// Node number at half-grid index `h`, if that point is a node.
-    pub fn node_at(&self, h: [usize; 3]) -> Option<usize> {
-        let g = self.div.map(|d| 2 * d + 1);
-        if (0..3).any(|r| h[r] >= g[r]) {
-            return None;
-        }
-        let n = self.grid[h[0] + g[0] * (h[1] + g[1] * h[2])];
-        (n != usize::MAX).then_some(n)
-    }
-
-    /// Coordinates of node `n`.
-    pub fn coord(&self, n: usize) -> [f64; 3] {
-        let h = self.nodes[n];
-        std::array::from_fn(|r| {
-            self.origin[r] + self.size[r] * h[r] as f64 / (2 * self.div[r]) as f64
-        })
-    }
-
-    /// The elements' node numbers, in the order of [`hex20::NATURAL`].
-    pub fn elements(&self) -> Vec<[usize; hex20::NODES]> {
-        let mut out = Vec::with_capacity(self.div.iter().product());
-        for k in 0..self.div[2] {
-            for j in 0..self.div[1] {
-                for i in 0..self.div[0] {
-                    out.push(std::array::from_fn(|a| {
-                        let s = hex20::NATURAL[a];
-                        let h = [
-                            (2 * i as i64 + 1 + s[0] as i64) as usize,
-                            (2 * j as i64 + 1 + s[1] as i64) as usize,
-                            (2 * k as i64 + 1 + s[2] as i64) as usize,
-                        ];
-                        self.node_at(h).expect("an element's node is on the grid")
-                    }));
-                }
-            }
-        }
-        out
-    }
-}
 
 /// One part (beam or coupler) of the frame.
 struct Part {
@@ -215,7 +90,7 @@ pub(super) fn assemble(
         ("solid_frame.material.rho", sf.material.rho),
         ("solid_frame.spring_factor", sf.spring_factor),
     ] {
-        super::assemble::check_positive(f.to_string(), v)?;
+        super::finish::check_positive(f.to_string(), v)?;
     }
     if !(sf.material.nu > -1.0 && sf.material.nu < 0.5) {
         return Err(invalid(
@@ -515,7 +390,7 @@ pub(super) fn assemble(
     let mut mats = vec![k0];
     mats.extend(k_params.iter().map(|a| a.build(n_dof)));
     mats.push(mass);
-    super::assemble::finish(
+    super::finish::finish(
         name,
         labels,
         mats,
@@ -723,7 +598,7 @@ pub fn solid_cantilever(
             dofs: combos[tip][r].clone(),
         })
         .to_vec();
-    super::assemble::finish(
+    super::finish::finish(
         "solid-cantilever",
         labels,
         vec![k, m],

@@ -21,6 +21,8 @@
 
 use serde::Deserialize;
 
+use super::ModelError;
+
 /// A whole model file.
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -54,7 +56,7 @@ pub struct ModelSpec {
     /// A solid (20-node hexahedra) multi-bay frame generated from a few dimensions, instead
     /// of the frame entries above (DESIGN §4.3).
     #[serde(default)]
-    pub solid_frame: Option<super::solid::SolidFrameSpec>,
+    pub solid_frame: Option<SolidFrameSpec>,
     /// Defaults of the Bayesian MAP (14) for this model; command-line flags override them.
     #[serde(default)]
     pub bayesian: BayesSpec,
@@ -197,4 +199,79 @@ pub struct ChannelSpec {
     pub name: String,
     pub at: String,
     pub dir: String,
+}
+
+/// `[solid_frame]` in a model file.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SolidFrameSpec {
+    /// Bays per chord (≥ 2).
+    pub bays: usize,
+    pub beam: BeamSpec,
+    pub coupler: CouplerSpec,
+    pub material: SolidMaterialSpec,
+    /// `k = factor · 4EI/L` of the connection springs (50 in the paper).
+    pub spring_factor: f64,
+}
+
+/// A beam: `length` (m) along its axis, `in_plane` (m) across it in the frame plane (the
+/// depth of in-plane bending), `out_of_plane` (m) through the plane; `divisions` = elements
+/// along the length, `in_plane` and `out_of_plane`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BeamSpec {
+    pub length: f64,
+    pub in_plane: f64,
+    pub out_of_plane: f64,
+    pub divisions: [usize; 3],
+}
+
+/// A coupler: a square block of side `size` (m) in the frame plane and the beams'
+/// `out_of_plane` size through it, with `divisions` elements along each in-plane side (and
+/// the beams' through the plane).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CouplerSpec {
+    pub size: f64,
+    pub divisions: usize,
+}
+
+#[allow(non_snake_case)]
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SolidMaterialSpec {
+    pub E: f64,
+    pub nu: f64,
+    pub rho: f64,
+}
+
+/// The parameter names, in order.
+pub const PARAMETERS: [&str; 4] = ["ip-left", "ip-right", "ip-vertical", "op"];
+
+impl ModelSpec {
+    /// A `[solid_frame]` model generates its own structure: no frame entries beside it.
+    pub(super) fn check_no_frame_entries(&self) -> Result<(), ModelError> {
+        let frame_entries = [
+            ("materials", self.materials.len()),
+            ("sections", self.sections.len()),
+            ("nodes", self.nodes.len()),
+            ("joints", self.joints.len()),
+            ("members", self.members.len()),
+            ("supports", self.supports.len()),
+            ("connections", self.connections.len()),
+            ("masses", self.masses.len()),
+            ("springs", self.springs.len()),
+            ("parameters", self.parameters.len()),
+            ("channels", self.channels.len()),
+        ];
+        if let Some((key, _)) = frame_entries.iter().find(|(_, n)| *n > 0) {
+            return Err(ModelError::Invalid {
+                field: key.to_string(),
+                reason:
+                    "a [solid_frame] model generates its own structure; remove the frame entries"
+                        .into(),
+            });
+        }
+        Ok(())
+    }
 }

@@ -9,7 +9,7 @@ pub mod residual;
 pub use data::{MeasuredData, RawMode, TargetMode, TargetShape, Weighting};
 pub use mode_matching::{
     AtBound, FinalStep, ModeMatching, ModeMatchingOptions, ModeMatchingResult, StartPath,
-    StepControl, Termination, chi2_bound, chi2_bound_of_dof, chi2_dof,
+    StepControl, Termination,
 };
 pub use residual::{Evaluation, Evaluator};
 

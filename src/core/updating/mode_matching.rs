@@ -18,6 +18,7 @@ use super::UpdateError;
 use super::data::{MeasuredData, Weighting};
 use super::residual::{Evaluation, Evaluator};
 use crate::core::model::Model;
+use crate::core::stats::chi2_bound;
 
 /// Largest change of ln θ_i in one Levenberg–Marquardt step (a factor e² ≈ 7.4): a safety cap
 /// on top of the damping, so one wild linearization cannot send θ to 1e±30.
@@ -495,23 +496,6 @@ pub enum StartPath {
 /// Uniform restart values, tried in this order: moderately soft and stiff first, then the
 /// ends of the range where bolted connections are identifiable (paper Fig. 9b).
 pub const RESTART_STARTS: [f64; 6] = [0.5, 2.0, 0.3, 3.5, 0.7, 1.4];
-
-/// The χ² degrees of freedom of ε: `ν = N − N_θ` (at least 1).
-pub fn chi2_dof(n_data: usize, n_params: usize) -> f64 {
-    n_data.saturating_sub(n_params).max(1) as f64
-}
-
-/// The χ² acceptance bound of a χ²_ν quantity: `ν + 4√(2ν)` (4 standard deviations above
-/// the mean).
-pub fn chi2_bound_of_dof(nu: f64) -> f64 {
-    nu + 4.0 * (2.0 * nu).sqrt()
-}
-
-/// The χ² acceptance bound of ε: `ν + 4√(2ν)` with `ν = N − N_θ` (ε ~ χ²_ν when the model
-/// class is right and Σ_M is true; 4 standard deviations above the mean).
-pub fn chi2_bound(n_data: usize, n_params: usize) -> f64 {
-    chi2_bound_of_dof(chi2_dof(n_data, n_params))
-}
 
 impl ModeMatching {
     /// [`ModeMatching::run`] with globalization (DESIGN §5): a run that does not converge, or

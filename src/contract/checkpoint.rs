@@ -1,0 +1,69 @@
+//! `boltwatch.checkpoint.v1`: a tracker's persistent state, and the eigen solver's warm
+//! block so that a resume continues bit for bit. The envelope and the block are the
+//! contract's; the state type is the tracker's ([`crate::pipeline::TrackerState`]).
+
+use serde::{Deserialize, Serialize};
+
+use super::wire::{Message, Schema};
+use crate::core::modal::eigen::WarmBlock;
+
+/// One checkpoint (module docs).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Checkpoint<S> {
+    pub schema: Schema<Checkpoint<()>>,
+    pub state: S,
+    /// `null` before the first eigen solve.
+    pub eigen_block: Option<EigenBlock>,
+}
+
+impl Message for Checkpoint<()> {
+    const SCHEMA: &'static str = "boltwatch.checkpoint.v1";
+}
+
+/// A [`WarmBlock`] on the wire: θ, the mode count, the Ritz values and the vectors column
+/// by column.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EigenBlock {
+    pub theta: Vec<f64>,
+    pub n_modes: usize,
+    pub lambda: Vec<f64>,
+    pub x: Vec<Vec<f64>>,
+}
+
+impl From<&WarmBlock> for EigenBlock {
+    fn from(b: &WarmBlock) -> Self {
+        Self {
+            theta: b.theta.clone(),
+            n_modes: b.n_modes,
+            lambda: b.lambda.clone(),
+            x: (0..b.x.ncols())
+                .map(|j| (0..b.x.nrows()).map(|i| b.x[(i, j)]).collect())
+                .collect(),
+        }
+    }
+}
+
+impl EigenBlock {
+    /// The block, checked against the model's sizes; the error says what does not fit.
+    pub fn into_warm_block(self, n_dof: usize, n_params: usize) -> Result<WarmBlock, String> {
+        let q = self.x.len();
+        if self.theta.len() != n_params
+            || self.lambda.len() != q
+            || self.n_modes > q
+            || self.x.iter().any(|c| c.len() != n_dof)
+        {
+            return Err(format!(
+                "sizes (θ {}, λ {}, modes {}, vectors {q}) do not fit the model ({n_params} parameters, {n_dof} DOFs)",
+                self.theta.len(),
+                self.lambda.len(),
+                self.n_modes
+            ));
+        }
+        Ok(WarmBlock {
+            theta: self.theta,
+            n_modes: self.n_modes,
+            lambda: self.lambda,
+            x: faer::Mat::from_fn(n_dof, q, |i, j| self.x[j][i]),
+        })
+    }
+}

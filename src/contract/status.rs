@@ -1,0 +1,67 @@
+//! `boltwatch.status.v1`: the reply to a `boltwatch/<structure>/status` query, the daemon's
+//! latest state of one structure.
+
+use chrono::{DateTime, Utc};
+use serde::{Deserialize, Serialize};
+
+use super::alert::Alert;
+use super::stiffness::Estimate;
+use super::wire::{Message, Schema, time};
+
+/// One status reply (module docs).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Status {
+    pub schema: Schema<Status>,
+    pub structure: String,
+    /// When the reply was made.
+    #[serde(with = "time")]
+    pub time: DateTime<Utc>,
+    #[serde(with = "time")]
+    pub started: DateTime<Utc>,
+    pub uptime_s: f64,
+    pub queue: QueueStatus,
+    pub sets: SetCounts,
+    /// Mean time of an update (ms), once there is one.
+    pub update_mean_ms: Option<f64>,
+    /// Time of the last accepted set.
+    pub last_set_time: Option<String>,
+    pub last_estimate: Option<Estimate>,
+    /// The last alert per (kind, connection); a `cleared` one stays until replaced.
+    pub alerts: Vec<Alert>,
+    pub crosschecks: CrosscheckCounts,
+    pub publish_errors: u64,
+    /// The log file being written.
+    pub log_file: Option<String>,
+    /// When the state was last checkpointed.
+    pub last_checkpoint: Option<String>,
+}
+
+impl Message for Status {
+    const SCHEMA: &'static str = "boltwatch.status.v1";
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct QueueStatus {
+    pub depth: u64,
+    pub capacity: usize,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SetCounts {
+    /// Received from Zenoh (queued or dropped).
+    pub received: u64,
+    /// Dropped at a full queue.
+    pub dropped: u64,
+    pub accepted: u64,
+    pub rejected: u64,
+    /// Accepted, but the update did not converge.
+    pub unconverged: u64,
+    pub cold_starts: u64,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CrosscheckCounts {
+    pub published: u64,
+    /// Not started because the previous one was still running.
+    pub skipped: u64,
+}

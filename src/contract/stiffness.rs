@@ -1,0 +1,119 @@
+//! `boltwatch.stiffness.v1` (DESIGN §3.3): the tracker's estimate for one modal set, and
+//! the per-mode comparison it shares with `boltwatch.update.v1`.
+
+use chrono::{DateTime, Utc};
+use serde::{Deserialize, Serialize};
+
+use super::wire::{Message, Schema, time};
+use crate::core::updating::{Evaluation, Termination as FitTermination};
+
+/// One estimate (module docs).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Estimate {
+    pub schema: Schema<Estimate>,
+    pub structure: String,
+    /// Time of the modal set.
+    #[serde(with = "time")]
+    pub time: DateTime<Utc>,
+    pub method: Method,
+    pub converged: bool,
+    pub termination: Termination,
+    pub iterations: usize,
+    pub warm_start: bool,
+    /// Why the fit started cold (`first set`, a failed warm start).
+    pub cold_start_reason: Option<String>,
+    /// ε (6) at the estimate.
+    pub epsilon: f64,
+    /// Its χ² bound.
+    pub epsilon_bound: f64,
+    pub temperature_c: Option<f64>,
+    pub parameters: Vec<ParameterEstimate>,
+    pub modes: Vec<ModeComparison>,
+}
+
+impl Message for Estimate {
+    const SCHEMA: &'static str = "boltwatch.stiffness.v1";
+}
+
+/// The updating method of an estimate.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Method {
+    ModeMatching,
+    Bayesian,
+}
+
+/// How a fit ended. On the wire as the names `Converged`, `MaxIterations`, `Stalled`,
+/// `Diverged` (the v1 names).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Termination {
+    Converged,
+    MaxIterations,
+    Stalled,
+    /// Fixed-κ Gauss–Newton left θ > 0 (only with a fixed κ, which the tracker never uses;
+    /// the reason is in the command's own output).
+    Diverged,
+}
+
+impl From<&FitTermination> for Termination {
+    fn from(t: &FitTermination) -> Self {
+        match t {
+            FitTermination::Converged => Self::Converged,
+            FitTermination::MaxIterations => Self::MaxIterations,
+            FitTermination::Stalled => Self::Stalled,
+            FitTermination::Diverged(_) => Self::Diverged,
+        }
+    }
+}
+
+/// One parameter of an estimate.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ParameterEstimate {
+    pub name: String,
+    pub theta: f64,
+    /// Standard deviation from the covariance (15); `null` if it is not finite.
+    pub std: Option<f64>,
+    pub lower95: Option<f64>,
+    pub upper95: Option<f64>,
+    /// θ at commissioning, once the baseline sets are in.
+    pub baseline: Option<f64>,
+    /// (θ − baseline)/baseline.
+    pub change: Option<f64>,
+    /// k_R·θ (N·m/rad), when the parameter's connections share one nominal k_R.
+    pub stiffness: Option<f64>,
+    pub filtered: FilteredLevel,
+}
+
+/// The drift filter's view of a parameter after this set.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FilteredLevel {
+    pub level: f64,
+    pub trend_per_day: f64,
+    pub std: f64,
+    pub lower95: f64,
+    pub upper95: f64,
+    pub change: Option<f64>,
+}
+
+/// A measured mode against the model mode paired with it (29).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ModeComparison {
+    pub measured_hz: f64,
+    pub model_hz: f64,
+    /// MAC (26) of the pair; `null` for a frequency-only mode.
+    pub mac: Option<f64>,
+    /// 1-based index of the paired model mode.
+    pub paired_with: usize,
+}
+
+impl ModeComparison {
+    /// Measured mode `m` (at `measured_hz`) in a fit's iterate.
+    pub fn of(last: &Evaluation, m: usize, measured_hz: f64) -> Self {
+        Self {
+            measured_hz,
+            model_hz: last.model_hz(m),
+            mac: super::wire::finite(last.mac[m]),
+            paired_with: last.pairing[m] + 1,
+        }
+    }
+}

@@ -1,0 +1,121 @@
+//! Fitting a model class to the data (mode matching) and localizing where it misfits:
+//! steps 1 and 3 of the workflow (module docs of [`super`]).
+
+use super::*;
+
+/// A fitted model class.
+pub(super) struct Fit {
+    pub(super) model: Model,
+    pub(super) result: ModeMatchingResult,
+}
+
+pub(super) fn mm_options() -> ModeMatchingOptions {
+    ModeMatchingOptions {
+        step: StepControl::LevenbergMarquardt,
+        tol: 1e-6,
+        max_iterations: 100,
+        final_step: FinalStep::Evaluate,
+        sigma_tol: Some(0.01),
+        // ε to 1e-3: far below what the tests (Λ against ~24, Δε 6) and the profile's
+        // curvature (ε differences ≳ 0.05 over ±5 % of the value) resolve. Without it, fits
+        // of a candidate that cannot explain the data creep along a flat valley of ε for
+        // 20–50 iterations and stall.
+        eps_tol: Some(1e-3),
+        bounds: None,
+    }
+}
+
+pub(super) fn build(
+    spec: &ModelSpec,
+    what: impl FnOnce() -> String,
+) -> Result<Model, DiagnosisError> {
+    Model::from_spec(spec).map_err(|source| DiagnosisError::Model {
+        what: what(),
+        source,
+    })
+}
+
+/// Fits `spec` to `data` from `theta0` (globalized if `global`).
+pub(super) fn fit(
+    spec: &ModelSpec,
+    data: &MeasuredData,
+    theta0: &[f64],
+    global: bool,
+) -> Result<Fit, DiagnosisError> {
+    let model = build(spec, || "the effects named so far".into())?;
+    let ev = Evaluator::new(&model)?;
+    let mut mm = ModeMatching::new(ev);
+    let opts = mm_options();
+    let result = if global {
+        mm.run_global(&model, data, theta0, &opts).map(|r| r.0)
+    } else {
+        mm.run(&model, data, theta0, &opts)
+    }?;
+    Ok(Fit { model, result })
+}
+
+/// ε at the profile point `u` of an effect: θ refitted from each of `starts` (the best
+/// kept: the fitted θ of the model without the effect can sit in a valley the effect's
+/// true value does not share), +∞ when the enriched model cannot be built or fitted.
+pub(super) fn profile_point(
+    spec: &ModelSpec,
+    effect: &dyn Effect,
+    location: &str,
+    u: f64,
+    data: &MeasuredData,
+    starts: &[&[f64]],
+) -> (f64, Vec<f64>) {
+    let mut best = (f64::INFINITY, starts[0].to_vec());
+    let mut s = spec.clone();
+    if effect.apply(&mut s, location, u).is_err() {
+        return best;
+    }
+    let Ok(model) = Model::from_spec(&s) else {
+        return best;
+    };
+    let Ok(ev) = Evaluator::new(&model) else {
+        return best;
+    };
+    let mut mm = ModeMatching::new(ev);
+    for t in starts {
+        if let Ok(r) = mm.run(&model, data, t, &mm_options())
+            && r.epsilon() < best.0
+        {
+            best = (r.epsilon(), r.theta);
+        }
+    }
+    best
+}
+
+/// The misfit of a fitted model, per mode and per channel.
+pub(super) fn localize(model: &Model, data: &MeasuredData, ev: &Evaluation) -> Localization {
+    let channels = model.channels();
+    let mut per_channel: Vec<(String, f64, usize)> =
+        channels.iter().map(|c| (c.name.clone(), 0.0, 0)).collect();
+    let mut modes = Vec::new();
+    let mut at = 0;
+    for (m, mode) in data.modes.iter().enumerate() {
+        let k = ev.pairing[m];
+        modes.push(ModeMisfit {
+            measured_hz: mode.lambda.sqrt() / (2.0 * std::f64::consts::PI),
+            model_hz: ev.eig.frequency_hz(k),
+            error_sigma: ev.r[at],
+            mac: ev.mac[m],
+            paired_with: k + 1,
+        });
+        at += 1;
+        if let Some(s) = &mode.shape {
+            for &c in &s.channels {
+                per_channel[c].1 += ev.r[at] * ev.r[at];
+                per_channel[c].2 += 1;
+                at += 1;
+            }
+        }
+    }
+    Localization {
+        epsilon: ev.epsilon,
+        theta: ev.theta.clone(),
+        modes,
+        channels: per_channel,
+    }
+}

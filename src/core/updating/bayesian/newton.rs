@@ -1,0 +1,343 @@
+//! The MAP by a trust-region Newton method on the reduced objective `F(λ, θ)`, with σ_c
+//! continuation for small σ_c (module docs of [`super`]).
+
+use super::*;
+
+/// Newton iterations allowed to a warm-started stage of the σ_c continuation before it
+/// counts as failed (a warm stage needs 4–25 on the reference structures).
+pub const CONTINUATION_STAGE_ITERATIONS: usize = 50;
+/// Newton iterations allowed to a cold start (from `λ̂`, `θ0`) before the continuation
+/// gives it up and climbs to a larger σ_c.
+pub const COLD_START_ITERATIONS: usize = 30;
+/// A cold start is given up early, after this many iterations, if the trust-region
+/// multiplier `μ` (relative to the largest diagonal entry of the scaled Hessian) has not
+/// once fallen below [`STALL_DAMPING`]: its steps are still gradient-like, the sign of a
+/// start stuck on the wall of the narrow valley of a small σ_c.
+pub const STALL_PROBE_ITERATIONS: usize = 6;
+/// See [`STALL_PROBE_ITERATIONS`].
+pub const STALL_DAMPING: f64 = 1e-2;
+/// Stopping rule of the intermediate continuation stages (the next stage re-converges, so
+/// these need only bring the start into Newton's quadratic region): every component of the
+/// step below this relative, or the predicted decrease below 1e-9 of `F`.
+pub const STAGE_STEP_TOL: f64 = 1e-6;
+/// Cold starts the continuation tries above the target σ_c (at `10σ_c, 100σ_c, …`) before
+/// it concludes that a larger σ_c does not help. On the reference structures the first
+/// converging cold start is at most 1000σ_c.
+pub const CONTINUATION_CLIMBS: usize = 6;
+/// Factor between the σ_c of two warm-started continuation stages.
+pub const CONTINUATION_RATIO: f64 = 3.162_277_660_168_379_5;
+
+/// Stopping rule of the Newton solver: every component of the undamped step below this,
+/// relative to `max(|y_i|, 1e-12·max|y|)`.
+pub const NEWTON_STEP_TOL: f64 = 1e-11;
+/// Stopping rule of the Newton solver: the predicted decrease of `F` relative to `F`.
+pub const NEWTON_DECREMENT_TOL: f64 = 1e-14;
+/// Relative resolution of an evaluation of `F`: a step predicted to lower `F` by less
+/// than this that does not lower it ends the solve (at the minimum if the Hessian is
+/// positive definite there). `F` is a sum of squares with cancellation inside the model
+/// term: on the four-bay solid frame (σ_c = 1e3) evaluations next to its MAP scatter by up
+/// to ~5e-10 relative.
+pub const NEWTON_RESOLUTION: f64 = 1e-10;
+/// Initial trust radius of the Newton solver (relative change of `(λ, θ)`, 2-norm).
+pub const TRUST_INITIAL_RADIUS: f64 = 0.5;
+/// Largest trust radius: below 1, so a step keeps every λ and θ positive.
+pub const TRUST_MAX_RADIUS: f64 = 0.9;
+/// Trust radius below which no step can lower `F` measurably: the solver stops.
+pub const TRUST_MIN_RADIUS: f64 = 1e-15;
+/// A step is accepted when it achieves this fraction of the predicted decrease.
+pub const TRUST_ACCEPT: f64 = 1e-4;
+/// Stopping rule of the alternating solver, as published: every `|Δθ_l| < 1e-9`.
+pub const ALTERNATING_TOL: f64 = 1e-9;
+
+/// When [`BayesProblem::newton`] stops.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct NewtonStop {
+    /// Every step component below this relative to `max(|y_i|, 1e-12·max|y|)`.
+    step_tol: f64,
+    /// Predicted decrease below this relative to `F`.
+    decrement_tol: f64,
+    /// Give up after [`STALL_PROBE_ITERATIONS`] if the relative trust-region multiplier
+    /// never fell below [`STALL_DAMPING`].
+    stall_probe: bool,
+}
+
+impl NewtonStop {
+    /// The solver's own stopping rule: converged to machine precision.
+    const FINAL: Self = Self {
+        step_tol: NEWTON_STEP_TOL,
+        decrement_tol: NEWTON_DECREMENT_TOL,
+        stall_probe: false,
+    };
+    /// A cold start of the continuation.
+    const COLD: Self = Self {
+        stall_probe: true,
+        ..Self::FINAL
+    };
+    /// An intermediate warm stage of the continuation.
+    const STAGE: Self = Self {
+        step_tol: STAGE_STEP_TOL,
+        decrement_tol: 1e-9,
+        stall_probe: false,
+    };
+}
+
+impl BayesProblem {
+    /// Damped Newton on `F(λ, θ)` from `λ = λ̂`, `θ = theta0`: a trust-region method on
+    /// the exact Hessian, in relative coordinates (see [`trust`]). A step is accepted when it
+    /// achieves [`TRUST_ACCEPT`] of the decrease its quadratic model predicts; the radius
+    /// doubles (up to [`TRUST_MAX_RADIUS`]) after a boundary step the model predicted well,
+    /// and shrinks after a poor one. Near a minimum with a positive definite Hessian the
+    /// steps are Newton's.
+    pub fn solve_newton(
+        &self,
+        theta0: &[f64],
+        max_iterations: usize,
+    ) -> Result<BayesResult, BayesError> {
+        self.solve_newton_from(&self.lambda_hat(), theta0, max_iterations)
+    }
+
+    /// Newton made robust for small σ_c. A small σ_c makes `F(λ, θ)` a narrow curved
+    /// valley (the model equation is nearly a constraint), and a cold start from `λ̂`, `θ0`
+    /// can stall far from it. So: a cold start at the target σ_c; if it does not converge
+    /// within [`COLD_START_ITERATIONS`], or stalls (see [`STALL_PROBE_ITERATIONS`]), cold
+    /// starts at `10σ_c, 100σ_c, …` until one converges (at most [`CONTINUATION_CLIMBS`];
+    /// if none does, the first cold start carries on), then warm-started stages back down
+    /// to the target, each σ_c [`CONTINUATION_RATIO`] below the last (if one fails, the
+    /// first cold start carries on). Stages above the target stop at the
+    /// looser [`STAGE_STEP_TOL`]; the last converges to the solver's full precision.
+    /// `max_iterations` bounds the iterations of all stages together.
+    pub fn solve_newton_continued(
+        &mut self,
+        theta0: &[f64],
+        max_iterations: usize,
+    ) -> Result<BayesResult, BayesError> {
+        let target = self.sigma_c();
+        let budget = CONTINUATION_STAGE_ITERATIONS.min(max_iterations);
+        let cold_budget = COLD_START_ITERATIONS.min(max_iterations);
+        let mut stages = Vec::new();
+        let mut used = 0;
+        let finish =
+            |prob: &mut Self, mut r: BayesResult, stages: Vec<ContinuationStage>, used: usize| {
+                prob.inv_s2 = 1.0 / (target * target);
+                r.iterations = used;
+                r.stages = stages;
+                r
+            };
+        let record = |stages: &mut Vec<ContinuationStage>, s: f64, r: &BayesResult| {
+            stages.push(ContinuationStage {
+                sigma_c: s,
+                iterations: r.iterations,
+                converged: r.converged,
+            })
+        };
+        let lambda_hat = self.lambda_hat();
+        let direct = self.newton(&lambda_hat, theta0, cold_budget, NewtonStop::COLD)?;
+        used += direct.iterations;
+        record(&mut stages, target, &direct);
+        if direct.converged || cold_budget == max_iterations {
+            // Converged, or the caller allowed no more than one stage.
+            return Ok(finish(self, direct, stages, used));
+        }
+        // Climb until a cold start converges.
+        let mut sigma = target;
+        let mut good: Option<BayesResult> = None;
+        for _ in 0..CONTINUATION_CLIMBS {
+            sigma *= 10.0;
+            if used >= max_iterations {
+                break;
+            }
+            self.inv_s2 = 1.0 / (sigma * sigma);
+            // Above the target: a stage, to the looser rule, but stall-probed.
+            let stop = NewtonStop {
+                stall_probe: true,
+                ..NewtonStop::STAGE
+            };
+            let r = self.newton(
+                &lambda_hat,
+                theta0,
+                cold_budget.min(max_iterations - used),
+                stop,
+            )?;
+            used += r.iterations;
+            record(&mut stages, sigma, &r);
+            if r.converged {
+                good = Some(r);
+                break;
+            }
+        }
+        // If no cold start converged up to 10^CONTINUATION_CLIMBS σ_c, or a warm stage
+        // fails on the way down, the trouble is not the narrow valley of a small σ_c
+        // (typically θ runs against the boundary θ > 0): carry on at the target from where
+        // the first cold start stopped, with the budget left.
+        let carry_on = |prob: &mut Self, mut stages: Vec<ContinuationStage>, mut used: usize| {
+            prob.inv_s2 = 1.0 / (target * target);
+            let more = prob.newton(
+                &direct.state.lambda,
+                &direct.state.theta,
+                max_iterations.saturating_sub(used),
+                NewtonStop::FINAL,
+            )?;
+            used += more.iterations;
+            record(&mut stages, target, &more);
+            Ok(finish(prob, more, stages, used))
+        };
+        let Some(mut good) = good else {
+            return carry_on(self, stages, used);
+        };
+        // Descend with warm starts; only the last stage, at the target, converges fully.
+        while sigma > target {
+            if used >= max_iterations {
+                // Budget spent above the target: report the last stage at the target σ_c,
+                // not converged.
+                self.inv_s2 = 1.0 / (target * target);
+                let mut r = self.solve_newton_from(&good.state.lambda, &good.state.theta, 0)?;
+                r.converged = false;
+                return Ok(finish(self, r, stages, used));
+            }
+            let next = (sigma / CONTINUATION_RATIO).max(target);
+            self.inv_s2 = 1.0 / (next * next);
+            let stop = if next > target {
+                NewtonStop::STAGE
+            } else {
+                NewtonStop::FINAL
+            };
+            let r = self.newton(
+                &good.state.lambda,
+                &good.state.theta,
+                budget.min(max_iterations - used),
+                stop,
+            )?;
+            used += r.iterations;
+            record(&mut stages, next, &r);
+            if !r.converged {
+                return carry_on(self, stages, used);
+            }
+            sigma = next;
+            good = r;
+        }
+        Ok(finish(self, good, stages, used))
+    }
+
+    /// [`Self::solve_newton`] from any `(λ0, θ0)`, e.g. the MAP at a neighbouring σ_c.
+    pub fn solve_newton_from(
+        &self,
+        lambda0: &[f64],
+        theta0: &[f64],
+        max_iterations: usize,
+    ) -> Result<BayesResult, BayesError> {
+        self.newton(lambda0, theta0, max_iterations, NewtonStop::FINAL)
+    }
+
+    /// The damped Newton iteration behind [`Self::solve_newton_from`], with its stopping
+    /// rule as a parameter.
+    pub(super) fn newton(
+        &self,
+        lambda0: &[f64],
+        theta0: &[f64],
+        max_iterations: usize,
+        stop: NewtonStop,
+    ) -> Result<BayesResult, BayesError> {
+        let nm = self.modes.len();
+        let mut y: Vec<f64> = lambda0.to_vec();
+        y.extend_from_slice(theta0);
+        let mut cur = self.reduced(&y[..nm], &y[nm..])?;
+        let mut delta = TRUST_INITIAL_RADIUS;
+        let mut least_mu = f64::INFINITY;
+        let mut iterations = 0;
+        let mut converged = false;
+        let mut stuck = false;
+        while iterations < max_iterations {
+            if stop.stall_probe && iterations >= STALL_PROBE_ITERATIONS && least_mu >= STALL_DAMPING
+            {
+                break;
+            }
+            let ny = y.len();
+            let scale_y = y.iter().fold(0.0_f64, |a, v| a.max(v.abs()));
+            // Undamped Newton step for the stopping test: converged when every component is
+            // below `step_tol` relative, or the predicted decrease −gᵀΔ/2 is below
+            // `decrement_tol` of F (F cannot be lowered measurably any more).
+            if let Ok(llt) = cur.hessian.llt(Side::Lower) {
+                let g = Col::from_fn(ny, |i| -cur.gradient[i]);
+                let step = llt.solve(g.as_mat());
+                let decrement: f64 = 0.5 * (0..ny).map(|i| g[i] * step[(i, 0)]).sum::<f64>();
+                if (0..ny)
+                    .all(|i| step[(i, 0)].abs() <= stop.step_tol * y[i].abs().max(1e-12 * scale_y))
+                    || decrement <= stop.decrement_tol * cur.value.abs()
+                {
+                    converged = true;
+                    break;
+                }
+            }
+            // Trust-region step in relative coordinates `y_i = d_i (1 + z_i)`: the region
+            // `‖z‖ ≤ Δ < 1` keeps every λ and θ positive, and scales the modes' eigenvalues
+            // (~1e5) and the parameters (~1) alike.
+            let d: Vec<f64> = y.iter().map(|v| v.abs().max(1e-12 * scale_y)).collect();
+            let h_scaled = Mat::from_fn(ny, ny, |i, j| d[i] * cur.hessian[(i, j)] * d[j]);
+            let g_scaled: Vec<f64> = (0..ny).map(|i| d[i] * cur.gradient[i]).collect();
+            let h_diag = (0..ny).map(|i| h_scaled[(i, i)].abs()).fold(0.0, f64::max);
+            let mut accepted = false;
+            while delta >= TRUST_MIN_RADIUS {
+                let Some(step) = trust::trust_region_step(&h_scaled, &g_scaled, delta) else {
+                    break;
+                };
+                let trial_y: Vec<f64> = (0..ny).map(|i| y[i] + d[i] * step.z[i]).collect();
+                let length = step.z.iter().map(|v| v * v).sum::<f64>().sqrt();
+                // θ > 0 and λ > 0 (K positive definite, modes of a stable structure); the
+                // radius keeps them, a trial outside is treated like one that ascends.
+                let trial = if trial_y.iter().all(|v| *v > 0.0) {
+                    self.reduced(&trial_y[..nm], &trial_y[nm..]).ok()
+                } else {
+                    None
+                };
+                let Some(trial) = trial else {
+                    delta = 0.25 * length.min(delta);
+                    continue;
+                };
+                // Ratio of the actual to the predicted decrease.
+                let rho = (cur.value - trial.value) / step.predicted;
+                if trial.value < cur.value && rho > TRUST_ACCEPT {
+                    if rho > 0.75 && step.on_boundary {
+                        delta = (2.0 * delta).min(TRUST_MAX_RADIUS);
+                    } else if rho < 0.25 {
+                        delta = 0.25 * length;
+                    }
+                    y = trial_y;
+                    cur = trial;
+                    least_mu = least_mu.min(step.mu / h_diag.max(f64::MIN_POSITIVE));
+                    accepted = true;
+                    break;
+                }
+                // A rejected step whose predicted decrease F cannot even resolve: the
+                // minimum is reached to F's rounding (shrinking the radius would only spend
+                // evaluations on rounding noise).
+                if step.predicted <= NEWTON_RESOLUTION * cur.value.abs() {
+                    break;
+                }
+                delta = 0.25 * length.min(delta);
+            }
+            iterations += 1;
+            self.report(iterations, cur.value, &y[nm..]);
+            if !accepted {
+                // No descent possible at machine precision: at the minimum if the Hessian
+                // is positive definite there, otherwise stuck (a saddle or a boundary).
+                converged = cur.hessian.llt(Side::Lower).is_ok();
+                stuck = !converged;
+                break;
+            }
+        }
+        let state = BayesState {
+            lambda: y[..nm].to_vec(),
+            phi: cur.phi,
+            theta: y[nm..].to_vec(),
+        };
+        Ok(BayesResult {
+            terms: self.objective(&state),
+            state,
+            iterations,
+            converged,
+            stuck,
+            solver: BayesSolver::Newton,
+            stages: Vec::new(),
+        })
+    }
+}

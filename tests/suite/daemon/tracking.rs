@@ -1,0 +1,425 @@
+//! The daemon tracks what replay tracks, rejects what it must, and loses nothing on
+//! SIGTERM or at a full queue.
+
+use std::collections::BTreeMap;
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use serde_json::Value;
+use zenoh::Wait;
+
+use super::*;
+use crate::suite::common::python_venv;
+use crate::suite::tracker::{make_scenario, payloads, tmp_dir};
+use boltwatch::io::mcap::{ChannelSpec, McapWriter, read_all, read_modal_sets, topic};
+
+/// Cross-checks every 400 sets (and not by time).
+const CROSSCHECK_400: &str = "[tracker]\ncrosscheck_every_sets = 400\ncrosscheck_every_s = 0.0\n";
+const CROSSCHECK_400_ENV: [(&str, &str); 2] = [
+    ("BOLTWATCH__TRACKER__CROSSCHECK_EVERY_SETS", "400"),
+    ("BOLTWATCH__TRACKER__CROSSCHECK_EVERY_S", "0"),
+];
+
+/// A loosening recording published over Zenoh gives the estimates, alerts and cross-checks
+/// a replay of it gives, payload for payload; the status query reports the run; the
+/// daemon's log replays to the same estimates; SIGTERM stops it cleanly.
+#[test]
+fn daemon_over_zenoh_gives_what_replay_gives() {
+    let d = tmp_dir("daemon-replay");
+    let rec = d.join("rec.mcap");
+    make_scenario("loosening", 1200, 60.0, &rec);
+    let mut daemon = Daemon::start(&d, "queue = 2000", CROSSCHECK_400);
+    let s = client(&daemon.endpoint);
+    let outputs = Outputs::subscribe(&s);
+    wait_status(&s, Duration::from_secs(30), "the daemon to answer", |_| {
+        true
+    });
+    let said = run_ok(publish(&rec, &daemon.endpoint, &["--rate", "0"]));
+    assert!(said.contains("published 1200 modal sets"), "{said}");
+    let st = wait_status(&s, Duration::from_secs(300), "1200 sets tracked", |v| {
+        v["sets"]["accepted"].as_u64().unwrap() + v["sets"]["rejected"].as_u64().unwrap() >= 1200
+    });
+    assert_eq!(st["sets"]["received"], 1200);
+    assert_eq!(st["sets"]["accepted"], 1200);
+    assert_eq!(st["sets"]["dropped"], 0);
+    assert_eq!(st["schema"], "boltwatch.status.v1");
+
+    let reference = replayed(&rec, &d.join("ref.mcap"), &CROSSCHECK_400_ENV);
+    let want = |suffix| payloads(&reference, suffix);
+    let mut got = BTreeMap::new();
+    let deadline = Instant::now() + Duration::from_secs(120);
+    loop {
+        outputs.drain(&mut got);
+        let n = |k: &str| got.get(k).map_or(0, Vec::len);
+        if n("stiffness") == 1200 && n("crosscheck") == want("crosscheck").len() {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "outputs missing: {:?}",
+            got.iter().map(|(k, v)| (k, v.len())).collect::<Vec<_>>()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert_eq!(
+        got["stiffness"],
+        want("stiffness"),
+        "estimates differ from replay"
+    );
+    assert!(!want("alerts").is_empty(), "the recording raises alerts");
+    assert_eq!(got["alerts"], want("alerts"), "alerts differ from replay");
+    let mut cc = got["crosscheck"].clone();
+    cc.sort_by_key(|v| v["time"].as_str().unwrap().to_string());
+    assert_eq!(cc, want("crosscheck"), "cross-checks differ from replay");
+    assert!(!got.contains_key("rejected"));
+    // The status shows the last estimate and the alerts raised.
+    assert_eq!(st["last_estimate"], *want("stiffness").last().unwrap());
+    assert!(
+        st["alerts"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|a| a["level"] == "alarm" && a["connection"] == "C1L@J1L"),
+        "{:#}",
+        st["alerts"]
+    );
+    // Metrics.
+    let m = http_get(&daemon.metrics, "/metrics");
+    assert!(
+        m.contains("boltwatch_sets_processed_total{structure=\"lab-frame\"} 1200"),
+        "{m}"
+    );
+    assert!(m.contains("boltwatch_update_seconds_count{structure=\"lab-frame\"} 1200"));
+    assert!(m.contains("boltwatch_theta{structure=\"lab-frame\",parameter=\"C1L@J1L\"}"));
+    drop(outputs);
+    drop(s);
+
+    let exit = daemon.terminate();
+    assert!(exit.success(), "{exit:?}; log:\n{}", daemon.log());
+    let logs = daemon.log_files();
+    assert_eq!(logs.len(), 1, "{logs:?}");
+    let again = replayed(&logs[0], &d.join("again.mcap"), &CROSSCHECK_400_ENV);
+    assert_eq!(payloads(&again, "stiffness"), want("stiffness"));
+    assert_eq!(
+        payloads(&read_all(&logs[0]).unwrap(), "stiffness"),
+        want("stiffness")
+    );
+}
+
+/// A minimal HTTP GET on loopback.
+fn http_get(addr: &str, path: &str) -> String {
+    use std::io::{Read, Write};
+    let mut c = std::net::TcpStream::connect(addr).unwrap();
+    write!(c, "GET {path} HTTP/1.1\r\nHost: {addr}\r\n\r\n").unwrap();
+    let mut s = String::new();
+    c.read_to_string(&mut s).unwrap();
+    assert!(s.starts_with("HTTP/1.1 200"), "{s}");
+    s
+}
+
+/// Garbage bytes, a wrong schema, a NaN frequency and a set of another structure sent over
+/// Zenoh are each answered on `rejected` with the reason and field; the daemon keeps
+/// tracking.
+#[test]
+fn malformed_payloads_over_zenoh_are_rejected_and_the_daemon_goes_on() {
+    let d = tmp_dir("daemon-malformed");
+    let rec = d.join("rec.mcap");
+    make_scenario("healthy", 30, 1.5, &rec);
+    let (sets, _) = read_modal_sets(&rec, &["lab-frame"]).unwrap();
+    let mut daemon = Daemon::start(&d, "", "");
+    let s = client(&daemon.endpoint);
+    let outputs = Outputs::subscribe(&s);
+    wait_status(&s, Duration::from_secs(30), "the daemon to answer", |_| {
+        true
+    });
+    // A publisher that blocks rather than drops, once the daemon's subscriber is known.
+    let publisher = s
+        .declare_publisher(topic("lab-frame", "modal"))
+        .congestion_control(zenoh::qos::CongestionControl::Block)
+        .wait()
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while !publisher.matching_status().wait().unwrap().matching() {
+        assert!(
+            Instant::now() < deadline,
+            "the daemon's subscriber never matched"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let put = |bytes: Vec<u8>| publisher.put(bytes).wait().unwrap();
+    for (_, m) in &sets[..20] {
+        put(m.data.clone());
+    }
+    let text = String::from_utf8(sets[20].1.data.clone()).unwrap();
+    let mut nan: Value = serde_json::from_str(&text).unwrap();
+    let f = nan["modes"][0]["frequency_hz"].as_f64().unwrap();
+    let nan_text = text.replacen(&format!("{f}"), "NaN", 1);
+    assert_ne!(nan_text, text);
+    nan["structure"] = "other-frame".into();
+    let bad: [(&str, Vec<u8>); 4] = [
+        ("garbage", vec![0xff, 0xfe, 0x00, 0x13, 0x37]),
+        (
+            "schema",
+            br#"{"schema": "boltwatch.modal_set.v0"}"#.to_vec(),
+        ),
+        ("NaN", nan_text.into_bytes()),
+        ("structure", serde_json::to_vec(&nan).unwrap()),
+    ];
+    for (_, b) in &bad {
+        put(b.clone());
+    }
+    for (_, m) in &sets[20..] {
+        put(m.data.clone());
+    }
+    let st = wait_status(&s, Duration::from_secs(120), "34 sets handled", |v| {
+        v["sets"]["accepted"].as_u64().unwrap() + v["sets"]["rejected"].as_u64().unwrap() >= 34
+    });
+    assert_eq!(st["sets"]["accepted"], 30);
+    assert_eq!(st["sets"]["rejected"], 4);
+    let mut got = BTreeMap::new();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while got.get("rejected").map_or(0, Vec::len) < 4
+        || got.get("stiffness").map_or(0, Vec::len) < 30
+    {
+        assert!(Instant::now() < deadline);
+        std::thread::sleep(Duration::from_millis(20));
+        outputs.drain(&mut got);
+    }
+    let rejected = &got["rejected"];
+    assert_eq!(rejected.len(), 4);
+    for (r, (what, _)) in rejected.iter().zip(&bad) {
+        let reason = r["reason"].as_str().unwrap();
+        assert!(!reason.is_empty(), "{what}: {r:#}");
+        assert_eq!(r["schema"], "boltwatch.rejected.v1");
+        println!("{what}: field {} — {reason}", r["field"]);
+    }
+    assert!(
+        rejected[1]["field"].as_str().unwrap().contains("schema"),
+        "{:#}",
+        rejected[1]
+    );
+    assert!(
+        rejected[2]["field"].as_str().unwrap().contains("frequency"),
+        "{:#}",
+        rejected[2]
+    );
+    assert!(
+        rejected[3]["field"].as_str().unwrap().contains("structure"),
+        "{:#}",
+        rejected[3]
+    );
+    // Tracking went on across the rejections: the estimates equal a replay of the 30 good sets.
+    let reference = replayed(&rec, &d.join("ref.mcap"), &[]);
+    assert_eq!(got["stiffness"], payloads(&reference, "stiffness"));
+    assert!(daemon.terminate().success());
+}
+
+/// SIGTERM while a publisher is mid-stream, then a restart: both runs exit cleanly, every
+/// log file is complete and opens in the Python `mcap` reader, every set the daemon
+/// received has exactly one estimate, no estimate appears twice, and the restarted
+/// tracker goes on from the first run's state.
+#[test]
+fn sigterm_mid_stream_then_restart_loses_and_duplicates_nothing() {
+    let d = tmp_dir("daemon-sigterm");
+    let rec = d.join("rec.mcap");
+    make_scenario("healthy", 600, 30.0, &rec);
+    let mut daemon = Daemon::start(&d, "", "");
+    let s = client(&daemon.endpoint);
+    wait_status(&s, Duration::from_secs(30), "the daemon to answer", |_| {
+        true
+    });
+    drop(s);
+    let mut publisher = publish(&rec, &daemon.endpoint, &["--rate", "200", "--count", "400"])
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(1000));
+    let exit = daemon.terminate();
+    assert!(exit.success(), "{exit:?}; log:\n{}", daemon.log());
+    let _ = publisher.wait();
+    let first_logs = daemon.log_files();
+    assert_eq!(first_logs.len(), 1, "{first_logs:?}");
+    let ckpt: Value =
+        serde_json::from_slice(&std::fs::read(d.join("state/lab-frame.checkpoint.json")).unwrap())
+            .unwrap();
+    let accepted_first = ckpt["state"]["accepted"].as_u64().unwrap();
+    assert!(
+        (50..400).contains(&accepted_first),
+        "SIGTERM came mid-stream: {accepted_first} sets tracked"
+    );
+
+    let mut daemon = daemon.restart();
+    let s = client(&daemon.endpoint);
+    wait_status(&s, Duration::from_secs(30), "the restarted daemon", |_| {
+        true
+    });
+    run_ok(publish(
+        &rec,
+        &daemon.endpoint,
+        &["--rate", "0", "--skip", "400"],
+    ));
+    let st = wait_status(&s, Duration::from_secs(120), "200 more sets", |v| {
+        v["sets"]["accepted"].as_u64().unwrap() >= accepted_first + 200
+    });
+    assert_eq!(
+        st["sets"]["accepted"].as_u64().unwrap(),
+        accepted_first + 200,
+        "resumed count"
+    );
+    drop(s);
+    assert!(daemon.terminate().success());
+
+    let logs = daemon.log_files();
+    assert_eq!(logs.len(), 2, "{logs:?}");
+    assert!(
+        logs.iter().all(|p| p.extension().unwrap() == "mcap"),
+        "{logs:?}"
+    );
+    let mut inputs = Vec::new();
+    let mut estimates = Vec::new();
+    for f in &logs {
+        let all = read_all(f).unwrap();
+        let time = |v: &Value| {
+            chrono::DateTime::parse_from_rfc3339(v["time"].as_str().unwrap())
+                .unwrap()
+                .to_utc()
+        };
+        inputs.extend(payloads(&all, "modal").iter().map(time));
+        estimates.extend(payloads(&all, "stiffness").iter().map(time));
+        assert!(payloads(&all, "rejected").is_empty());
+    }
+    assert_eq!(
+        estimates.len(),
+        inputs.len(),
+        "one estimate per set received"
+    );
+    assert!(
+        estimates == inputs,
+        "one estimate per set received, in order"
+    );
+    assert_eq!(estimates.len() as u64, accepted_first + 200);
+    let mut unique = estimates.clone();
+    unique.dedup();
+    assert_eq!(unique.len(), estimates.len(), "an estimate appears twice");
+    // The Python reader opens both files, every message.
+    let python = python_venv(
+        "py-mcap-venv",
+        "import mcap, zstandard",
+        &["mcap==1.6.0", "zstandard==0.25.0"],
+    );
+    for f in &logs {
+        let o = Command::new(&python)
+            .args([
+                "-c",
+                "import sys; from mcap.reader import make_reader\n\
+                 r = make_reader(open(sys.argv[1], 'rb'))\n\
+                 print(sum(1 for _ in r.iter_messages()))",
+            ])
+            .arg(f)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let n: usize = String::from_utf8_lossy(&o.stdout).trim().parse().unwrap();
+        assert_eq!(n, read_all(f).unwrap().len(), "{}", f.display());
+    }
+}
+
+/// 10,000 sets published as fast as the link takes them into a queue of 1,024: every set
+/// is either tracked or counted as dropped (status, metrics, one `rejected` report per
+/// batch), and the daemon's peak memory stays bounded.
+#[test]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow tier: cargo test --features slow-tests"
+)]
+fn a_burst_larger_than_the_queue_is_tracked_or_counted() {
+    let d = tmp_dir("daemon-burst");
+    let small = d.join("small.mcap");
+    make_scenario("healthy", 200, 10.0, &small);
+    // 10,000 sets: the 200 restamped one minute apart.
+    let (sets, _) = read_modal_sets(&small, &["lab-frame"]).unwrap();
+    let rec = d.join("burst.mcap");
+    {
+        let mut w = McapWriter::create(
+            &rec,
+            &[ChannelSpec::for_structure("lab-frame", "modal").unwrap()],
+        )
+        .unwrap();
+        let t0 = chrono::DateTime::parse_from_rfc3339("2026-01-01T00:00:00Z")
+            .unwrap()
+            .to_utc();
+        for k in 0..10_000 {
+            let mut v: Value = serde_json::from_slice(&sets[k % sets.len()].1.data).unwrap();
+            let t = t0 + chrono::Duration::minutes(k as i64);
+            v["time"] = boltwatch::contract::rfc3339(t).into();
+            let ns = t.timestamp_nanos_opt().unwrap() as u64;
+            w.write(
+                &topic("lab-frame", "modal"),
+                ns,
+                &serde_json::to_vec(&v).unwrap(),
+            )
+            .unwrap();
+        }
+        w.finish().unwrap();
+    }
+    let mut daemon = Daemon::start(&d, "queue = 1024", "");
+    let s = client(&daemon.endpoint);
+    let outputs = Outputs::subscribe(&s);
+    wait_status(&s, Duration::from_secs(30), "the daemon to answer", |_| {
+        true
+    });
+    let said = run_ok(publish(&rec, &daemon.endpoint, &["--rate", "0"]));
+    println!("{said}");
+    let st = wait_status(&s, Duration::from_secs(300), "the burst handled", |v| {
+        let n = |k: &str| v["sets"][k].as_u64().unwrap();
+        n("received") == 10_000
+            && v["queue"]["depth"] == 0
+            && n("accepted") + n("rejected") + n("dropped") == 10_000
+    });
+    let dropped = st["sets"]["dropped"].as_u64().unwrap();
+    let hwm_kib = vm_hwm_kib(daemon.pid());
+    println!(
+        "burst of 10,000: {} tracked, {dropped} dropped; daemon peak RSS {:.1} MiB",
+        st["sets"]["accepted"],
+        hwm_kib as f64 / 1024.0
+    );
+    // Reported: the rejected reports add up to the dropped count.
+    let mut got = BTreeMap::new();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        outputs.drain(&mut got);
+        let reported: u64 = got.get("rejected").map_or(0, |r| {
+            r.iter().map(|x| x["dropped"].as_u64().unwrap_or(0)).sum()
+        });
+        if reported == dropped {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "dropped {dropped}, reported {reported}"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let m = http_get(&daemon.metrics, "/metrics");
+    assert!(
+        m.contains(&format!(
+            "boltwatch_sets_dropped_total{{structure=\"lab-frame\"}} {dropped}"
+        )),
+        "{m}"
+    );
+    // Bounded: the queue holds at most 1,024 payloads of ~8 KB; the model, solver and
+    // Zenoh buffers need a few tens of MiB. 512 MiB would mean something grows with the
+    // burst.
+    assert!(hwm_kib < 512 * 1024, "peak RSS {hwm_kib} KiB");
+    drop(outputs);
+    drop(s);
+    assert!(daemon.terminate().success());
+}
+
+/// Peak resident set size of a process (KiB).
+fn vm_hwm_kib(pid: i32) -> u64 {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    s.lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+        .unwrap()
+}
