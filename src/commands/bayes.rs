@@ -8,11 +8,16 @@ use std::time::Instant;
 
 use anyhow::{Result, bail};
 use indicatif::ProgressBar;
-use serde_json::{Value, json};
 
 use super::inputs::{Inputs, measured_data};
 use super::progress::{fmt_theta, iteration_progress, progress_line, spinner};
 use super::{load_model, parse_positive_list, write_json};
+use crate::contract::stiffness::Method;
+use crate::contract::update::{
+    AutoSigmaDoc, BayesBlock, BayesDoc, BayesModeDoc, BayesParameter, BayesTermination, LCurveDoc,
+    Mapping, NamedTheta, SigmaMisfit, Solver, StageDoc, StageOneDoc, TsvdDoc,
+};
+use crate::contract::{Schema, finite};
 use crate::core::model::Model;
 use crate::core::updating::bayesian::{
     AutoSigma, BayesOptions, BayesProgress, BayesResult, BayesSolver, BayesUpdate,
@@ -142,36 +147,37 @@ fn sigma_reporter(choice: SigmaChoice) -> (Option<ProgressBar>, impl FnMut(Sigma
     (pb, report)
 }
 
-fn auto_json(auto: &Option<AutoSigma>) -> Value {
-    match auto {
-        None => Value::Null,
-        Some(a) => json!({
-            "rule": "smallest σ_c at which e_Mᵀ Σ_M⁻¹ e_M ≤ ν = N_data − N_θ − N_m (discrepancy principle)",
-            "nu": a.target,
-            "misfit": a.misfit,
-            "met": a.met,
-            "trials": a.trials.iter().map(|(s, m)| json!({"sigma_c": s, "misfit": m})).collect::<Vec<_>>(),
-        }),
-    }
+fn auto_doc(auto: &Option<AutoSigma>) -> Option<AutoSigmaDoc> {
+    auto.as_ref().map(|a| AutoSigmaDoc {
+        rule:
+            "smallest σ_c at which e_Mᵀ Σ_M⁻¹ e_M ≤ ν = N_data − N_θ − N_m (discrepancy principle)"
+                .into(),
+        nu: a.target,
+        misfit: a.misfit,
+        met: a.met,
+        trials: a
+            .trials
+            .iter()
+            .map(|&(sigma_c, misfit)| SigmaMisfit { sigma_c, misfit })
+            .collect(),
+    })
 }
 
 /// The σ_c continuation of a Newton solve (one stage when the cold start converged).
-pub(super) fn stages_json(stages: &[ContinuationStage]) -> Value {
+pub(super) fn stage_docs(stages: &[ContinuationStage]) -> Vec<StageDoc> {
     stages
         .iter()
-        .map(
-            |s| json!({"sigma_c": s.sigma_c, "iterations": s.iterations, "converged": s.converged}),
-        )
+        .map(|s| StageDoc {
+            sigma_c: s.sigma_c,
+            iterations: s.iterations,
+            converged: s.converged,
+        })
         .collect()
-}
-
-fn num_or_null(v: f64) -> Value {
-    if v.is_finite() { json!(v) } else { Value::Null }
 }
 
 /// Stage I of the two-stage update: its result and the fine θ0 it gives.
 struct StageOneOut {
-    json: Value,
+    doc: StageOneDoc,
     theta0: Vec<f64>,
 }
 
@@ -250,20 +256,33 @@ fn stage_one(
             .join(", ")
     );
     Ok(StageOneOut {
-        json: json!({
-            "model": coarse.name,
-            "modes": set.modes.len(),
-            "sigma_c": one.sigma_c,
-            "sigma_c_auto": auto_json(&one.auto),
-            "iterations": res.iterations,
-            "J_p": res.terms.total,
-            "parameters": coarse.parameters().iter().zip(&res.state.theta)
-                .map(|(p, t)| json!({"name": p.name, "theta": t})).collect::<Vec<_>>(),
-            "mapping": fine.parameters().iter().zip(&one.mapped).map(|(p, (v, c))| json!({
-                "name": p.name, "theta0": v,
-                "from": c.map(|c| coarse.parameters()[c].name.clone()),
-            })).collect::<Vec<_>>(),
-        }),
+        doc: StageOneDoc {
+            model: coarse.name.clone(),
+            modes: set.modes.len(),
+            sigma_c: one.sigma_c,
+            sigma_c_auto: auto_doc(&one.auto),
+            iterations: res.iterations,
+            J_p: res.terms.total,
+            parameters: coarse
+                .parameters()
+                .iter()
+                .zip(&res.state.theta)
+                .map(|(p, &theta)| NamedTheta {
+                    name: p.name.clone(),
+                    theta,
+                })
+                .collect(),
+            mapping: fine
+                .parameters()
+                .iter()
+                .zip(&one.mapped)
+                .map(|(p, &(theta0, c))| Mapping {
+                    name: p.name.clone(),
+                    theta0,
+                    from: c.map(|c| coarse.parameters()[c].name.clone()),
+                })
+                .collect(),
+        },
         theta0: one.theta0(),
     })
 }
@@ -391,59 +410,79 @@ pub fn run_update(
     };
     let tsvd_std = tsvd.as_ref().map_or(nan.clone(), |t| t.theta_std());
     let two_pi = 2.0 * std::f64::consts::PI;
-    let out_doc = json!({
-        "schema": "boltwatch.update.v1",
-        "method": "bayesian",
-        "structure": set.structure,
-        "time": set.time.to_rfc3339_opts(chrono::SecondsFormat::AutoSi, true),
-        "converged": res.converged,
-        "termination": termination(&res),
-        "iterations": res.iterations,
-        "seconds": seconds,
-        "solver": format!("{:?}", res.solver).to_lowercase(),
-        "start": if stage1.is_some() { "stage I" } else { "theta0" },
-        "epsilon": eval.epsilon,
-        "n_data": data.n_data(),
-        "bayesian": {
-            "sigma_c": sigma_c,
-            "sigma_c_auto": auto_json(&auto),
-            "prior_std": std,
-            "J_p": res.terms.total,
-            "measurement_misfit": res.terms.measurement,
-            "modelling_error": res.terms.modelling,
-            "prior_term": res.terms.prior,
-            "misfit_dof": misfit_dof,
-            "continuation": stages_json(&res.stages),
-            "tsvd": tsvd.as_ref().map(|t| json!({
-                "s_tol": t.s_tol(),
-                "kept": t.curve[t.chosen].kept,
-                "of": t.singular_values.len(),
-                "condition": t.condition(),
-                "corner_rule": "least E (25): where E stops falling as singular values are added; points with a negative variance excluded",
-                "l_curve": t.curve.iter().map(|c| json!({
-                    "s_tol": c.s_tol, "E": c.error, "norm": c.norm, "negative_variance": c.negative_variance,
-                })).collect::<Vec<_>>(),
-            })),
+    let out_doc = BayesDoc {
+        schema: Schema::new(),
+        method: Method::Bayesian,
+        structure: set.structure.clone(),
+        time: set.time.to_rfc3339_opts(chrono::SecondsFormat::AutoSi, true),
+        converged: res.converged,
+        termination: termination(&res),
+        iterations: res.iterations,
+        seconds,
+        solver: match res.solver {
+            BayesSolver::Newton => Solver::Newton,
+            BayesSolver::Alternating => Solver::Alternating,
         },
-        "stage1": stage1.as_ref().map(|s| s.json.clone()),
-        "parameters": model.parameters().iter().enumerate().map(|(l, par)| json!({
-            "name": par.name,
-            "theta": res.state.theta[l],
-            "std": num_or_null(post[l]),
-            "sampling_std": num_or_null(samp[l]),
-            "tsvd_std": num_or_null(tsvd_std[l]),
-            "mode_matching_theta": mm.as_ref().map(|r| r.theta[l]),
-        })).collect::<Vec<_>>(),
-        "modes": set.modes.iter().enumerate().map(|(m, mode)| json!({
-            "measured_hz": mode.frequency_hz,
-            "most_probable_lambda": res.state.lambda[m],
-            "most_probable_lambda_std": num_or_null(lambda_std[m]),
-            "most_probable_hz": res.state.lambda[m].max(0.0).sqrt() / two_pi,
-            "mac_most_probable_to_measured": macs[m],
-            "model_hz": eval.model_hz(m),
-            "model_mac": num_or_null(eval.mac[m]),
-        })).collect::<Vec<_>>(),
-    });
+        start: if stage1.is_some() { "stage I" } else { "theta0" }.into(),
+        epsilon: eval.epsilon,
+        n_data: data.n_data(),
+        bayesian: BayesBlock {
+            sigma_c,
+            sigma_c_auto: auto_doc(&auto),
+            prior_std: std,
+            J_p: res.terms.total,
+            measurement_misfit: res.terms.measurement,
+            modelling_error: res.terms.modelling,
+            prior_term: res.terms.prior,
+            misfit_dof,
+            continuation: stage_docs(&res.stages),
+            tsvd: tsvd.as_ref().map(|t| TsvdDoc {
+                s_tol: t.s_tol(),
+                kept: t.curve[t.chosen].kept,
+                of: t.singular_values.len(),
+                condition: t.condition(),
+                corner_rule: "least E (25): where E stops falling as singular values are added; points with a negative variance excluded".into(),
+                l_curve: t
+                    .curve
+                    .iter()
+                    .map(|c| LCurveDoc {
+                        s_tol: c.s_tol,
+                        E: c.error,
+                        norm: c.norm,
+                        negative_variance: c.negative_variance,
+                    })
+                    .collect(),
+            }),
+        },
+        stage1: stage1.as_ref().map(|s| s.doc.clone()),
+        parameters: model
+            .parameters()
+            .iter()
+            .enumerate()
+            .map(|(l, par)| BayesParameter {
+                name: par.name.clone(),
+                theta: res.state.theta[l],
+                std: finite(post[l]),
+                sampling_std: finite(samp[l]),
+                tsvd_std: finite(tsvd_std[l]),
+                mode_matching_theta: mm.as_ref().map(|r| r.theta[l]),
+            })
+            .collect(),
+        modes: set
+            .modes
+            .iter()
+            .enumerate()
+            .map(|(m, mode)| BayesModeDoc {
+                measured_hz: mode.frequency_hz,
+                most_probable_lambda: res.state.lambda[m],
+                most_probable_lambda_std: finite(lambda_std[m]),
+                most_probable_hz: res.state.lambda[m].max(0.0).sqrt() / two_pi,
+                mac_most_probable_to_measured: macs[m],
+                model_hz: eval.model_hz(m),
+                model_mac: finite(eval.mac[m]),
+            })
+            .collect(),
+    };
     write_json(out, &out_doc)?;
     print_bayes_table(
         model,
@@ -459,9 +498,10 @@ pub fn run_update(
         if auto.is_some() { " (automatic)" } else { "" },
         res.solver,
         match termination(&res) {
-            "converged" => "converged",
-            "boundary" => "NOT converged (stopped against θ > 0 or λ > 0: no interior minimum)",
-            _ => "NOT converged",
+            BayesTermination::Converged => "converged",
+            BayesTermination::Boundary =>
+                "NOT converged (stopped against θ > 0 or λ > 0: no interior minimum)",
+            BayesTermination::MaxIterations => "NOT converged",
         },
         res.iterations
     );
@@ -533,12 +573,12 @@ fn print_bayes_table(
 /// The `termination` of `boltwatch.update.v1` for a MAP solve: `converged`, `boundary` (no
 /// step lowers J_p and the Hessian is not positive definite there: the minimum lies outside
 /// θ > 0, λ > 0, or at a saddle) or `max_iterations`.
-fn termination(res: &BayesResult) -> &'static str {
+fn termination(res: &BayesResult) -> BayesTermination {
     if res.converged {
-        "converged"
+        BayesTermination::Converged
     } else if res.stuck {
-        "boundary"
+        BayesTermination::Boundary
     } else {
-        "max_iterations"
+        BayesTermination::MaxIterations
     }
 }

@@ -8,7 +8,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::{ModelAtTheta, write_json};
 use crate::contract::modal_set::{MeasuredMode, ModalSet};
-use crate::core::diagnosis::effects::Injection;
+use crate::core::diagnosis::injection::Injection;
 use crate::core::modal::solver_for;
 use crate::core::simulate::{Noise, simulate_modes};
 

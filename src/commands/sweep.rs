@@ -7,11 +7,12 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
-use serde_json::json;
 
-use super::bayes::{PriorArgs, prior, stages_json};
+use super::bayes::{PriorArgs, prior, stage_docs};
 use super::inputs::{Inputs, load_inputs};
 use super::{parse_theta, write_json};
+use crate::contract::Schema;
+use crate::contract::sweep::{AlternatingDoc, NewtonRun, SweepAuto, SweepDoc, SweepPointDoc};
 use crate::core::model::Model;
 use crate::core::updating::bayesian::{
     AutoSigma, BayesProblem, BayesSettings, SweepPoint, SweepSettings, discrepancy_choice,
@@ -107,32 +108,44 @@ pub fn run_sweep(args: &SweepArgs) -> Result<()> {
     )?
     .misfit_dof();
     let auto = discrepancy_choice(&points, nu).expect("a sweep has at least two points");
-    let out = json!({
-        "schema": "boltwatch.sigma_sweep.v1",
-        "model": model.name,
-        "parameters": model.parameters().iter().map(|p| p.name.clone()).collect::<Vec<_>>(),
-        "truth": truth,
-        "seconds": started.elapsed().as_secs_f64(),
-        "auto": {
-            "rule": "smallest σ_c at which e_Mᵀ Σ_M⁻¹ e_M ≤ ν = N_data − N_θ − N_m (discrepancy principle), interpolated on the grid",
-            "sigma_c": auto.sigma_c, "nu": nu, "met": auto.met,
+    let out = SweepDoc {
+        schema: Schema::new(),
+        model: model.name.clone(),
+        parameters: model.parameters().iter().map(|p| p.name.clone()).collect(),
+        truth: truth.clone(),
+        seconds: started.elapsed().as_secs_f64(),
+        auto: SweepAuto {
+            rule: "smallest σ_c at which e_Mᵀ Σ_M⁻¹ e_M ≤ ν = N_data − N_θ − N_m (discrepancy principle), interpolated on the grid".into(),
+            sigma_c: auto.sigma_c,
+            nu,
+            met: auto.met,
         },
-        "points": points.iter().map(|p| json!({
-            "sigma_c": p.sigma_c,
-            "theta": p.theta,
-            "most_probable_lambda": p.lambda,
-            "J_p": p.terms.total,
-            "measurement_misfit": p.terms.measurement,
-            "modelling_error": p.terms.modelling,
-            "prior_term": p.terms.prior,
-            "epsilon": p.epsilon,
-            "mac_most_probable_to_measured": p.mac,
-            "newton": {"iterations": p.iterations, "converged": p.converged, "continuation": stages_json(&p.stages)},
-            "alternating": p.alternating.as_ref().map(|a| json!({
-                "iterations": a.iterations, "converged": a.converged, "theta": a.theta, "J_p": a.total,
-            })),
-        })).collect::<Vec<_>>(),
-    });
+        points: points
+            .iter()
+            .map(|p| SweepPointDoc {
+                sigma_c: p.sigma_c,
+                theta: p.theta.clone(),
+                most_probable_lambda: p.lambda.clone(),
+                J_p: p.terms.total,
+                measurement_misfit: p.terms.measurement,
+                modelling_error: p.terms.modelling,
+                prior_term: p.terms.prior,
+                epsilon: p.epsilon,
+                mac_most_probable_to_measured: p.mac.clone(),
+                newton: NewtonRun {
+                    iterations: p.iterations,
+                    converged: p.converged,
+                    continuation: stage_docs(&p.stages),
+                },
+                alternating: p.alternating.as_ref().map(|a| AlternatingDoc {
+                    iterations: a.iterations,
+                    converged: a.converged,
+                    theta: a.theta.clone(),
+                    J_p: a.total,
+                }),
+            })
+            .collect(),
+    };
     write_json(&args.out.join("sweep.json"), &out)?;
     let svg = figure_svg(&sweep_panels(&model, &points, truth.as_deref(), &auto), 2);
     let svg_path = args.out.join("sweep.svg");

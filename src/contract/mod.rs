@@ -19,6 +19,7 @@ mod nonfinite;
 pub mod rejected;
 pub mod status;
 pub mod stiffness;
+pub mod sweep;
 pub mod update;
 pub mod wire;
 

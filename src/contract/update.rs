@@ -68,3 +68,159 @@ impl ModeResult {
         Self { pair, error }
     }
 }
+
+/// A Bayesian update (`method: bayesian`): the MAP of (14), its uncertainty and the
+/// mode-matching θ beside it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BayesDoc {
+    pub schema: Schema<ModeMatchingDoc>,
+    pub method: Method,
+    pub structure: String,
+    pub time: String,
+    pub converged: bool,
+    pub termination: BayesTermination,
+    pub iterations: usize,
+    /// Wall-clock time of the solve.
+    pub seconds: f64,
+    pub solver: Solver,
+    /// `theta0`, or `stage I` (the two-stage update).
+    pub start: String,
+    /// ε (5) at the MAP θ.
+    pub epsilon: f64,
+    pub n_data: usize,
+    pub bayesian: BayesBlock,
+    pub stage1: Option<StageOneDoc>,
+    pub parameters: Vec<BayesParameter>,
+    pub modes: Vec<BayesModeDoc>,
+}
+
+/// How a MAP solve ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BayesTermination {
+    Converged,
+    /// No step lowers J_p and the Hessian is not positive definite there: the minimum lies
+    /// outside θ > 0, λ > 0, or at a saddle.
+    Boundary,
+    MaxIterations,
+}
+
+/// The minimizer of (14).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Solver {
+    Newton,
+    Alternating,
+}
+
+/// The terms of (14) at the MAP, σ_c and how it was chosen, the continuation and the TSVD.
+#[allow(non_snake_case)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BayesBlock {
+    pub sigma_c: f64,
+    pub sigma_c_auto: Option<AutoSigmaDoc>,
+    pub prior_std: Vec<f64>,
+    pub J_p: f64,
+    pub measurement_misfit: f64,
+    pub modelling_error: f64,
+    pub prior_term: f64,
+    pub misfit_dof: f64,
+    pub continuation: Vec<StageDoc>,
+    pub tsvd: Option<TsvdDoc>,
+}
+
+/// The automatic σ_c (discrepancy rule).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AutoSigmaDoc {
+    pub rule: String,
+    pub nu: f64,
+    pub misfit: f64,
+    pub met: bool,
+    pub trials: Vec<SigmaMisfit>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SigmaMisfit {
+    pub sigma_c: f64,
+    pub misfit: f64,
+}
+
+/// One Newton solve of a σ_c continuation.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StageDoc {
+    pub sigma_c: f64,
+    pub iterations: usize,
+    pub converged: bool,
+}
+
+/// The TSVD covariance (24)–(25) and its L-curve.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TsvdDoc {
+    pub s_tol: f64,
+    pub kept: usize,
+    pub of: usize,
+    pub condition: f64,
+    pub corner_rule: String,
+    pub l_curve: Vec<LCurveDoc>,
+}
+
+#[allow(non_snake_case)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LCurveDoc {
+    pub s_tol: f64,
+    pub E: f64,
+    pub norm: f64,
+    pub negative_variance: bool,
+}
+
+/// Stage I of the two-stage update.
+#[allow(non_snake_case)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StageOneDoc {
+    pub model: String,
+    pub modes: usize,
+    pub sigma_c: f64,
+    pub sigma_c_auto: Option<AutoSigmaDoc>,
+    pub iterations: usize,
+    pub J_p: f64,
+    pub parameters: Vec<NamedTheta>,
+    pub mapping: Vec<Mapping>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct NamedTheta {
+    pub name: String,
+    pub theta: f64,
+}
+
+/// A fine parameter's start and the coarse parameter it came from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Mapping {
+    pub name: String,
+    pub theta0: f64,
+    pub from: Option<String>,
+}
+
+/// One parameter of a Bayesian update.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BayesParameter {
+    pub name: String,
+    pub theta: f64,
+    /// Posterior standard deviation (threshold-free).
+    pub std: Option<f64>,
+    pub sampling_std: Option<f64>,
+    pub tsvd_std: Option<f64>,
+    pub mode_matching_theta: Option<f64>,
+}
+
+/// One measured mode against the most probable mode and the model at the MAP θ.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BayesModeDoc {
+    pub measured_hz: f64,
+    pub most_probable_lambda: f64,
+    pub most_probable_lambda_std: Option<f64>,
+    pub most_probable_hz: f64,
+    pub mac_most_probable_to_measured: f64,
+    pub model_hz: f64,
+    pub model_mac: Option<f64>,
+}

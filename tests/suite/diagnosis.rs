@@ -6,7 +6,7 @@
 //! with ε at least 3.3 times its noise level, so that explaining the effect can bring ε
 //! down to 30 % of it.
 
-use boltwatch::core::diagnosis::effects::Injection;
+use boltwatch::core::diagnosis::injection::Injection;
 use boltwatch::core::diagnosis::{Diagnosis, DiagnosisOptions, diagnose};
 use boltwatch::core::model::Model;
 use boltwatch::core::model::spec::ModelSpec;

@@ -267,7 +267,7 @@ fn outputs_match_the_stored_digests() {
             Some((k.to_string(), v.to_string()))
         })
         .collect();
-    let differ: Vec<&String> = now
+    let differ: std::collections::BTreeSet<&String> = now
         .keys()
         .chain(stored.keys())
         .filter(|k| now.get(*k) != stored.get(*k))

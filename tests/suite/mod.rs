@@ -13,4 +13,5 @@ mod mode_matching;
 mod replay_cli;
 mod sensitivity;
 mod solid;
+mod solid_four_bay;
 mod tracker;

@@ -23,6 +23,7 @@
 
 pub mod effects;
 mod fit;
+pub mod injection;
 mod refit;
 mod screen;
 mod search;

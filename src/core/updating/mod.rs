@@ -3,13 +3,15 @@
 
 pub mod bayesian;
 pub mod data;
+pub mod globalize;
 pub mod mode_matching;
 pub mod residual;
 
 pub use data::{MeasuredData, RawMode, TargetMode, TargetShape, Weighting};
+pub use globalize::{RESTART_STARTS, StartPath};
 pub use mode_matching::{
-    AtBound, FinalStep, ModeMatching, ModeMatchingOptions, ModeMatchingResult, StartPath,
-    StepControl, Termination,
+    AtBound, FinalStep, ModeMatching, ModeMatchingOptions, ModeMatchingResult, StepControl,
+    Termination,
 };
 pub use residual::{Evaluation, Evaluator};
 

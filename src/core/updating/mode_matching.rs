@@ -18,7 +18,6 @@ use super::UpdateError;
 use super::data::{MeasuredData, Weighting};
 use super::residual::{Evaluation, Evaluator};
 use crate::core::model::Model;
-use crate::core::stats::chi2_bound;
 
 /// Largest change of ln θ_i in one Levenberg–Marquardt step (a factor e² ≈ 7.4): a safety cap
 /// on top of the damping, so one wild linearization cannot send θ to 1e±30.
@@ -481,67 +480,6 @@ impl ModeMatching {
     ) -> Result<Option<Mat<f64>>, UpdateError> {
         let jac = self.evaluator.jacobian(model, data, ev)?;
         Ok(covariance_from_jacobian(&jac, data, ev))
-    }
-}
-
-/// Where a globalized update found its answer.
-#[derive(Debug, Clone, PartialEq)]
-pub enum StartPath {
-    /// The run from the given θ0 was accepted.
-    Given,
-    /// A restart from the uniform start `θ = value · 1` (tried in order of [`RESTART_STARTS`]).
-    Restart { value: f64 },
-}
-
-/// Uniform restart values, tried in this order: moderately soft and stiff first, then the
-/// ends of the range where bolted connections are identifiable (paper Fig. 9b).
-pub const RESTART_STARTS: [f64; 6] = [0.5, 2.0, 0.3, 3.5, 0.7, 1.4];
-
-impl ModeMatching {
-    /// [`ModeMatching::run`] with globalization (DESIGN §5): a run that does not converge, or
-    /// ends with ε above [`chi2_bound`], is taken for a local minimum (typically MAC pairing
-    /// locked onto wrong modes early), and the update is restarted from the spread starts
-    /// [`RESTART_STARTS`] (the E-type and other parameters at their nominal value). The first
-    /// restart that converges within the bound is accepted; otherwise the lowest-ε converged
-    /// run (or the lowest-ε run) is returned. Also returns the path that found it.
-    pub fn run_global(
-        &mut self,
-        model: &Model,
-        data: &MeasuredData,
-        theta0: &[f64],
-        opts: &ModeMatchingOptions,
-    ) -> Result<(ModeMatchingResult, StartPath), UpdateError> {
-        let bound = chi2_bound(data.n_data(), model.n_params());
-        let good = |r: &ModeMatchingResult| r.converged() && r.epsilon() <= bound;
-        let first = self.run(model, data, theta0, opts)?;
-        if good(&first) {
-            return Ok((first, StartPath::Given));
-        }
-        let mut best = (first, StartPath::Given);
-        for value in RESTART_STARTS {
-            let start: Vec<f64> = model
-                .parameters()
-                .iter()
-                .map(|p| match p.kind {
-                    crate::core::model::ParameterKind::Modulus(_) => p.nominal,
-                    _ => value * p.nominal,
-                })
-                .collect();
-            let r = self.run(model, data, &start, opts)?;
-            let path = StartPath::Restart { value };
-            if good(&r) {
-                return Ok((r, path));
-            }
-            let better = match (r.converged(), best.0.converged()) {
-                (true, false) => true,
-                (false, true) => false,
-                _ => r.epsilon() < best.0.epsilon(),
-            };
-            if better {
-                best = (r, path);
-            }
-        }
-        Ok(best)
     }
 }
 

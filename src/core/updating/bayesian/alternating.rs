@@ -2,6 +2,9 @@
 
 use super::*;
 
+/// Stopping rule of the alternating solver, as published: every `|Δθ_l| < 1e-9`.
+pub const ALTERNATING_TOL: f64 = 1e-9;
+
 impl BayesProblem {
     /// The paper's alternating minimization (21)–(23) from `λ = λ̂`, `θ = theta0`, until every
     /// `|Δθ_l| < 1e-9` or `max_iterations`.

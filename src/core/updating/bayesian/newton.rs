@@ -46,8 +46,6 @@ pub const TRUST_MAX_RADIUS: f64 = 0.9;
 pub const TRUST_MIN_RADIUS: f64 = 1e-15;
 /// A step is accepted when it achieves this fraction of the predicted decrease.
 pub const TRUST_ACCEPT: f64 = 1e-4;
-/// Stopping rule of the alternating solver, as published: every `|Δθ_l| < 1e-9`.
-pub const ALTERNATING_TOL: f64 = 1e-9;
 
 /// When [`BayesProblem::newton`] stops.
 #[derive(Debug, Clone, Copy)]

@@ -116,6 +116,24 @@ pub fn choose_sigma_c(
     }
 }
 
+/// The MAP problem (14) of `model` and `data` at `sigma_c` with the prior of `opts`.
+fn problem(
+    model: &Model,
+    data: &MeasuredData,
+    sigma_c: f64,
+    opts: &BayesOptions,
+) -> Result<BayesProblem, BayesError> {
+    BayesProblem::new(
+        model,
+        data,
+        &BayesSettings {
+            sigma_c,
+            prior_mean: opts.prior_mean.clone(),
+            prior_std: opts.prior_std.clone(),
+        },
+    )
+}
+
 /// The Bayesian update of `model` to `data` from `theta0` (module docs).
 pub fn bayesian_update(
     model: &Model,
@@ -130,15 +148,7 @@ pub fn bayesian_update(
         phase,
     } = observers;
     let (sigma_c, auto) = choose_sigma_c(model, data, opts.sigma, opts, theta0, sigma_trial)?;
-    let mut prob = BayesProblem::new(
-        model,
-        data,
-        &BayesSettings {
-            sigma_c,
-            prior_mean: opts.prior_mean.clone(),
-            prior_std: opts.prior_std.clone(),
-        },
-    )?;
+    let mut prob = problem(model, data, sigma_c, opts)?;
     if let Some(f) = iteration {
         prob.set_progress(f);
     }
@@ -196,16 +206,8 @@ pub fn stage_one(
 ) -> Result<StageOne, WorkflowError> {
     let theta0 = coarse.nominal_theta();
     let (sigma_c, auto) = choose_sigma_c(coarse, data, opts.sigma, opts, &theta0, sigma_trial)?;
-    let mut prob = BayesProblem::new(
-        coarse,
-        data,
-        &BayesSettings {
-            sigma_c,
-            prior_mean: opts.prior_mean.clone(),
-            prior_std: opts.prior_std.clone(),
-        },
-    )?;
-    let result = prob.solve(opts.solver, &theta0, opts.max_iterations)?;
+    let result =
+        problem(coarse, data, sigma_c, opts)?.solve(opts.solver, &theta0, opts.max_iterations)?;
     if !result.converged {
         return Err(WorkflowError::StageOneNotConverged {
             model: coarse.name.clone(),
