@@ -15,7 +15,6 @@ use serde_json::Value;
 use zenoh::Wait;
 
 use boltwatch::io::mcap::{read_all, topic};
-use boltwatch::io::replay::{ReplayOptions, replay};
 use boltwatch::settings::Settings;
 
 pub fn bin() -> Command {
@@ -289,17 +288,7 @@ pub fn replayed_with(
     out: &Path,
     settings: Settings,
 ) -> Vec<boltwatch::io::mcap::RecordedMessage> {
-    replay(
-        &ReplayOptions {
-            recording: rec.to_path_buf(),
-            out: out.to_path_buf(),
-            checkpoint: out.with_extension("ckpt.json"),
-            resume: false,
-            settings,
-        },
-        |_, _| {},
-    )
-    .unwrap();
+    super::tracker::run_replay(rec, out, settings);
     read_all(out).unwrap()
 }
 
