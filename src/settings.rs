@@ -55,6 +55,12 @@ pub struct DaemonSettings {
     pub checkpoint_every_s: f64,
     pub log_rotate_mib: u64,
     pub log_rotate_hours: f64,
+    /// A set stamped more than this many seconds after its reception is rejected.
+    pub max_future_s: f64,
+    /// Larger payloads are rejected with their size, never copied whole.
+    pub max_payload_bytes: usize,
+    /// Bytes of the payloads waiting in one structure's queue, at most (MiB).
+    pub queue_mib: usize,
 }
 
 /// `[metrics]`.
@@ -180,9 +186,23 @@ impl Settings {
         if self.daemon.queue == 0 {
             bail!("configuration key daemon.queue: must be at least 1");
         }
+        if self.daemon.max_payload_bytes < 1024 {
+            bail!(
+                "configuration key daemon.max_payload_bytes: {} is too small for a modal set (at least 1024)",
+                self.daemon.max_payload_bytes
+            );
+        }
+        if self.daemon.queue_mib << 20 < self.daemon.max_payload_bytes {
+            bail!(
+                "configuration key daemon.queue_mib: {} MiB cannot hold one payload of daemon.max_payload_bytes = {}",
+                self.daemon.queue_mib,
+                self.daemon.max_payload_bytes
+            );
+        }
         for (key, v) in [
             ("daemon.checkpoint_every_s", self.daemon.checkpoint_every_s),
             ("daemon.log_rotate_hours", self.daemon.log_rotate_hours),
+            ("daemon.max_future_s", self.daemon.max_future_s),
         ] {
             if !(v.is_finite() && v > 0.0) {
                 bail!("configuration key {key}: {v} must be a finite number > 0");

@@ -50,6 +50,7 @@ pub fn load_set(model: &Model, path: &std::path::Path) -> Result<ModalSet> {
         model_channels: &channels,
         last_time: None,
         allow_equal_time: true,
+        max_future: None,
     };
     parse_modal_set(&bytes, &ctx).with_context(|| format!("modal set {} rejected", path.display()))
 }

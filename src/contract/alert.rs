@@ -11,6 +11,9 @@ use super::wire::{Message, Schema, time};
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Alert {
     pub schema: Schema<Alert>,
+    /// Stable id ([`super::output_id`]); absent (empty) in messages written before ids.
+    #[serde(default)]
+    pub id: String,
     pub structure: String,
     /// Time of the modal set that raised it.
     #[serde(with = "time")]

@@ -14,6 +14,18 @@ pub struct Checkpoint<S> {
     pub state: S,
     /// `null` before the first eigen solve.
     pub eigen_block: Option<EigenBlock>,
+    /// The daemon's write-ahead position: the inputs logged after it were not yet handled
+    /// when this state was taken, and a restart replays them (absent in replays).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub wal: Option<WalPosition>,
+}
+
+/// A position in the daemon's rolling log: the `modal`-th modal set (from 0) of log file
+/// `file` (its name in the log directory), and everything after it in later files.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct WalPosition {
+    pub file: String,
+    pub modal: u64,
 }
 
 impl Message for Checkpoint<()> {

@@ -10,6 +10,9 @@ use super::wire::{Message, Schema, time};
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Crosscheck {
     pub schema: Schema<Crosscheck>,
+    /// Stable id ([`super::output_id`]); absent (empty) in messages written before ids.
+    #[serde(default)]
+    pub id: String,
     pub structure: String,
     #[serde(with = "time")]
     pub time: DateTime<Utc>,

@@ -26,12 +26,13 @@ pub mod wire;
 use chrono::{DateTime, Utc};
 
 pub use alert::{Alert, AlertDetail, AlertKind, AlertLevel, Verdict};
+pub use checkpoint::WalPosition;
 pub use checkpoint::{Checkpoint, EigenBlock};
 pub use crosscheck::Crosscheck;
 pub use rejected::{REJECTED_PAYLOAD_LIMIT, Rejected};
 pub use status::Status;
 pub use stiffness::{Estimate, ModeComparison, Termination};
-pub use wire::{Message, Schema, finite, rfc3339, to_wire};
+pub use wire::{Message, Schema, digest, finite, output_id, rfc3339, to_wire};
 
 /// One output of a structure's tracker, on `boltwatch/<structure>/<topic>`.
 #[derive(Debug, Clone, PartialEq)]

@@ -19,6 +19,19 @@ pub const MODAL_SET_SCHEMA: &str = "boltwatch.modal_set.v1";
 /// Relative tolerance of the increasing-frequency rule.
 pub const FREQUENCY_ORDER_TOLERANCE: f64 = 1e-6;
 
+/// The smallest `frequency_cov` and `shape_nsd` accepted. A frequency known to 1 ppm needs
+/// about 10⁶ periods of record (28 hours at 10 Hz), beyond any identification this daemon
+/// is fed; below it the weights 1/σ² of (9) reach 10¹² and ε loses its meaning, and at
+/// 1e-300 they overflow.
+pub const UNCERTAINTY_FLOOR: f64 = 1e-6;
+
+/// The longest reason a rejection carries, in bytes: a reason quotes the offending data,
+/// which an attacker chooses.
+pub const REASON_LIMIT: usize = 512;
+
+/// The longest field path a rejection names, in bytes (an unknown key is named by itself).
+pub const FIELD_LIMIT: usize = 128;
+
 /// Top-level fields of the contract.
 const TOP_FIELDS: &[&str] = &[
     "schema",
@@ -85,12 +98,28 @@ pub struct ValidationContext<'a> {
     pub last_time: Option<DateTime<Utc>>,
     /// Replays may allow a set with the same time as the last accepted one.
     pub allow_equal_time: bool,
+    /// Live: the receiver's clock and how far ahead of it a set may be stamped; a set
+    /// stamped later is rejected (a sensor clock glitch must not become the last accepted
+    /// time, which would reject every later, correct set).
+    pub max_future: Option<(DateTime<Utc>, chrono::TimeDelta)>,
+}
+
+/// `text` cut to at most `limit` bytes (at a character boundary), with `…` when cut.
+pub fn capped(text: &str, limit: usize) -> String {
+    if text.len() <= limit {
+        return text.to_string();
+    }
+    let mut cut = limit.saturating_sub('…'.len_utf8());
+    while !text.is_char_boundary(cut) {
+        cut -= 1;
+    }
+    format!("{}…", &text[..cut])
 }
 
 fn reject(field: impl Into<String>, reason: impl Into<String>) -> Rejection {
     Rejection {
-        field: field.into(),
-        reason: reason.into(),
+        field: capped(&field.into(), FIELD_LIMIT),
+        reason: capped(&reason.into(), REASON_LIMIT),
     }
 }
 
@@ -134,6 +163,21 @@ fn positive(v: &Value, field: &str) -> Result<f64, Rejection> {
         Ok(x)
     } else {
         Err(reject(field, format!("must be > 0, got {x}")))
+    }
+}
+
+/// An uncertainty (a CoV or an NSD): a finite number ≥ [`UNCERTAINTY_FLOOR`].
+fn uncertainty(v: &Value, field: &str) -> Result<f64, Rejection> {
+    let x = positive(v, field)?;
+    if x >= UNCERTAINTY_FLOOR {
+        Ok(x)
+    } else {
+        Err(reject(
+            field,
+            format!(
+                "{x} is below the floor {UNCERTAINTY_FLOOR} (no identification resolves a mode that finely; the weights of (9) would be meaningless)"
+            ),
+        ))
     }
 }
 
@@ -246,6 +290,29 @@ pub fn parse_modal_set(payload: &[u8], ctx: &ValidationContext) -> Result<ModalS
             )
         })?
         .with_timezone(&Utc);
+    if !super::wire::representable(time) {
+        return Err(reject(
+            "time",
+            format!(
+                "{time_text:?} is outside the range every output format holds ({})",
+                super::wire::TIME_RANGE
+            ),
+        ));
+    }
+    if let Some((now, ahead)) = ctx.max_future
+        && time > now + ahead
+    {
+        return Err(reject(
+            "time",
+            format!(
+                "{} is {:.0} s ahead of the receiver's clock ({}); at most {} s allowed (daemon.max_future_s)",
+                format_time(&time),
+                (time - now).as_seconds_f64(),
+                format_time(&now),
+                ahead.num_seconds()
+            ),
+        ));
+    }
     if let Some(last) = ctx.last_time {
         if time < last {
             return Err(reject(
@@ -350,7 +417,7 @@ fn parse_mode(i: usize, v: &Value, n_channels: usize) -> Result<MeasuredMode, Re
     let frequency_hz = positive(required(obj, "frequency_hz", &f_path)?, &f_path)?;
     let frequency_cov = obj
         .get("frequency_cov")
-        .map(|v| positive(v, &format!("{path}.frequency_cov")))
+        .map(|v| uncertainty(v, &format!("{path}.frequency_cov")))
         .transpose()?;
 
     let shape = match obj.get("shape") {
@@ -405,6 +472,7 @@ fn parse_mode(i: usize, v: &Value, n_channels: usize) -> Result<MeasuredMode, Re
                     ),
                 ));
             }
+            check_normalizable(&shape, &s_path)?;
             Some(shape)
         }
     };
@@ -412,7 +480,7 @@ fn parse_mode(i: usize, v: &Value, n_channels: usize) -> Result<MeasuredMode, Re
     let nsd_path = format!("{path}.shape_nsd");
     let shape_nsd = obj
         .get("shape_nsd")
-        .map(|v| positive(v, &nsd_path))
+        .map(|v| uncertainty(v, &nsd_path))
         .transpose()?;
     if shape_nsd.is_some() && shape.is_none() {
         return Err(reject(nsd_path, "present on a mode without a shape"));
@@ -424,6 +492,36 @@ fn parse_mode(i: usize, v: &Value, n_channels: usize) -> Result<MeasuredMode, Re
         shape,
         shape_nsd,
     })
+}
+
+/// Rule: a shape has a direction that can be normalized: not all zero, and its norm and
+/// the norm's reciprocal finite (entries of 1e-310 or 1e200 would overflow the MAC and the
+/// scaling of (9)).
+fn check_normalizable(shape: &[Option<f64>], path: &str) -> Result<(), Rejection> {
+    let largest = shape.iter().flatten().fold(0.0_f64, |m, x| m.max(x.abs()));
+    if largest == 0.0 {
+        return Err(reject(
+            path,
+            "all measured entries are zero (a mode shape has a direction; omit it for a frequency-only mode)",
+        ));
+    }
+    let norm = largest
+        * shape
+            .iter()
+            .flatten()
+            .map(|x| (x / largest).powi(2))
+            .sum::<f64>()
+            .sqrt();
+    let sum_sq = norm * norm;
+    if !(sum_sq.is_normal() && (1.0 / sum_sq).is_normal()) {
+        return Err(reject(
+            path,
+            format!(
+                "cannot be normalized: its norm {norm:e} is out of the range of f64 arithmetic (scale the entries to order 1)"
+            ),
+        ));
+    }
+    Ok(())
 }
 
 /// Rule: frequencies increase, equality within [`FREQUENCY_ORDER_TOLERANCE`] accepted.

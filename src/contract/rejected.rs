@@ -4,7 +4,7 @@
 use chrono::{DateTime, Utc};
 use serde::{Deserialize, Serialize};
 
-use super::wire::{Message, Schema, time};
+use super::wire::{Message, Schema, digest, output_id, time};
 
 /// Raw payload bytes kept in a rejection.
 pub const REJECTED_PAYLOAD_LIMIT: usize = 4096;
@@ -13,6 +13,9 @@ pub const REJECTED_PAYLOAD_LIMIT: usize = 4096;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Rejected {
     pub schema: Schema<Rejected>,
+    /// Stable id ([`super::output_id`]); absent (empty) in messages written before ids.
+    #[serde(default)]
+    pub id: String,
     pub structure: String,
     /// The log time of the message: when the input was received.
     #[serde(with = "time")]
@@ -44,29 +47,65 @@ impl Rejected {
         reason: &str,
         payload: &[u8],
     ) -> Self {
-        let text = String::from_utf8_lossy(payload);
+        Self::cut(
+            structure,
+            received,
+            field,
+            reason,
+            payload,
+            payload.len(),
+            digest(payload),
+        )
+    }
+
+    /// A payload of `size` bytes (with digest `digest`) rejected for `reason` in `field`,
+    /// of which only `head` was kept (an oversized payload is never copied whole).
+    pub fn cut(
+        structure: &str,
+        received: DateTime<Utc>,
+        field: &str,
+        reason: &str,
+        head: &[u8],
+        size: usize,
+        digest: u128,
+    ) -> Self {
+        let head = &head[..head.len().min(REJECTED_PAYLOAD_LIMIT)];
+        let text = String::from_utf8_lossy(head);
         let mut cut = text.len().min(REJECTED_PAYLOAD_LIMIT);
         while !text.is_char_boundary(cut) {
             cut -= 1;
         }
         Self {
             schema: Schema::new(),
+            id: output_id(
+                structure,
+                received,
+                "rejected",
+                format_args!("{digest:032x}"),
+            ),
             structure: structure.to_string(),
             time: received,
             received,
-            reason: reason.to_string(),
-            field: field.to_string(),
+            reason: super::modal_set::capped(reason, super::modal_set::REASON_LIMIT),
+            field: super::modal_set::capped(field, super::modal_set::FIELD_LIMIT),
             payload: text[..cut].to_string(),
-            payload_bytes: payload.len(),
-            truncated: cut < text.len(),
+            payload_bytes: size,
+            truncated: head.len() < size || cut < text.len(),
             dropped: None,
         }
     }
 
-    /// `n` sets dropped at a full queue, reported at `now`.
-    pub fn dropped(structure: &str, now: DateTime<Utc>, n: u64, reason: String) -> Self {
+    /// `n` sets dropped at a full queue, reported at `now`; `total` since start.
+    pub fn dropped(
+        structure: &str,
+        now: DateTime<Utc>,
+        n: u64,
+        total: u64,
+        reason: String,
+    ) -> Self {
         Self {
             schema: Schema::new(),
+            id: output_id(structure, now, "dropped", total),
             structure: structure.to_string(),
             time: now,
             received: now,

@@ -30,6 +30,9 @@ pub struct Status {
     pub alerts: Vec<Alert>,
     pub crosschecks: CrosscheckCounts,
     pub publish_errors: u64,
+    /// The write-ahead log's group commits.
+    #[serde(default)]
+    pub wal: WalStatus,
     /// The log file being written.
     pub log_file: Option<String>,
     /// When the state was last checkpointed.
@@ -57,6 +60,26 @@ pub struct SetCounts {
     /// Accepted, but the update did not converge.
     pub unconverged: u64,
     pub cold_starts: u64,
+    /// Skipped as already handled (a re-delivery after a restart), neither accepted nor
+    /// rejected.
+    #[serde(default)]
+    pub duplicates: u64,
+    /// Handled again at start from the write-ahead log (logged before a crash, not yet
+    /// handled).
+    #[serde(default)]
+    pub replayed: u64,
+    /// Rejected because tracking them failed (an error or a panic), included in `rejected`.
+    #[serde(default)]
+    pub failed: u64,
+}
+
+/// Group commits of the write-ahead log: `syncs` fsyncs made `sets` sets durable in
+/// `sync_ms` milliseconds in all.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct WalStatus {
+    pub syncs: u64,
+    pub sets: u64,
+    pub sync_ms: f64,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

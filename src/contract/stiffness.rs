@@ -11,6 +11,9 @@ use crate::core::updating::{Evaluation, Termination as FitTermination};
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Estimate {
     pub schema: Schema<Estimate>,
+    /// Stable id ([`super::output_id`]); absent (empty) in messages written before ids.
+    #[serde(default)]
+    pub id: String,
     pub structure: String,
     /// Time of the modal set.
     #[serde(with = "time")]

@@ -10,6 +10,16 @@ use chrono::{DateTime, SecondsFormat, Utc};
 use serde::de::{self, Deserializer};
 use serde::{Deserialize, Serialize, Serializer};
 
+/// The times every output format holds: MCAP log times are unsigned and chrono's
+/// nanosecond timestamps signed 64-bit nanoseconds since 1970, so the common range is
+/// 1970-01-01T00:00:00Z to 2262-04-11T23:47:16.854775807Z.
+pub const TIME_RANGE: &str = "1970-01-01T00:00:00Z to 2262-04-11T23:47:16Z";
+
+/// Whether `t` is in [`TIME_RANGE`].
+pub fn representable(t: DateTime<Utc>) -> bool {
+    t.timestamp_nanos_opt().is_some_and(|n| n >= 0)
+}
+
 /// A wire message: its schema name (with its version) and the topic suffix it goes out on.
 pub trait Message {
     /// `boltwatch.<name>.v<version>`.
@@ -84,6 +94,38 @@ pub fn to_wire<T: Serialize>(message: &T) -> Vec<u8> {
 /// RFC 3339 with milliseconds and `Z`.
 pub fn rfc3339(t: DateTime<Utc>) -> String {
     t.to_rfc3339_opts(SecondsFormat::Millis, true)
+}
+
+/// The first 128 bits of the SHA-256 of `bytes`: the content digest of a payload (the
+/// dedup of re-delivered sets; in hex, `{:032x}`, the ids of rejections).
+pub fn digest(bytes: &[u8]) -> u128 {
+    digest_parts([bytes])
+}
+
+/// [`digest`] of the concatenation of `parts` (a payload in several slices).
+pub fn digest_parts<'a>(parts: impl IntoIterator<Item = &'a [u8]>) -> u128 {
+    use sha2::Digest;
+    let mut hasher = sha2::Sha256::new();
+    for p in parts {
+        hasher.update(p);
+    }
+    let d = hasher.finalize();
+    u128::from_be_bytes(d[..16].try_into().expect("SHA-256 has 32 bytes"))
+}
+
+/// The stable id of an output: `<structure>/<time>/<kind>/<sequence>`, where `time` is the
+/// time of the set it answers ([`rfc3339`]; for a rejection, the reception time), `kind`
+/// says what it is (`stiffness`, `alert`, `diagnosis`, `crosscheck`, `rejected`, `dropped`)
+/// and `sequence` tells apart the outputs of one kind for one set (the alerts of a set in
+/// order; a rejection's payload digest; a queue report's running count). The same input
+/// gives the same id, in a replay and after a restart, so a subscriber can deduplicate.
+pub fn output_id(
+    structure: &str,
+    time: DateTime<Utc>,
+    kind: &str,
+    sequence: impl fmt::Display,
+) -> String {
+    format!("{structure}/{}/{kind}/{sequence}", rfc3339(time))
 }
 
 /// `null` for a non-finite number (JSON has none).

@@ -2,19 +2,24 @@
 //! and every output (log time: the time of the set it answers), on the topics and schemas
 //! of a replay's output, so `boltwatch replay LOG.mcap` reruns a live session.
 //!
+//! It is also the write-ahead log: a received set is written ([`RollingLog::write_input`])
+//! and made durable ([`RollingLog::sync`], once for every set waiting: group commit) before
+//! it is handled, and a checkpoint records the [`WalPosition`] of the first set not yet
+//! handled; a restart handles again the sets logged after it ([`RollingLog::inputs_after`]).
+//!
 //! Files are `<dir>/<structure>-<UTC start>.mcap`. The file being written is
 //! `….mcap.part`; it is finished (summary written) and renamed when it reaches the size or
-//! age limit and at shutdown, so every `.mcap` file is complete. [`RollingLog::sync`] (at
-//! every checkpoint) makes everything written so far durable; a `.part` file left by a crash
-//! is completed, up to its last readable message, when the next log opens.
+//! age limit (the next file opens at once) and at shutdown, so every `.mcap` file is
+//! complete. A `.part` file left by a crash is completed, up to its last readable message,
+//! when the next log opens.
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 
-use crate::contract::Output;
-use crate::io::mcap::{ChannelSpec, McapWriter, read_tolerant};
+use crate::contract::{Output, WalPosition};
+use crate::io::mcap::{ChannelSpec, McapWriter, RecordedMessage, read_all, read_tolerant, topic};
 use crate::io::replay::with_suffix;
 
 /// Messages between two size checks of the open file.
@@ -36,6 +41,8 @@ struct OpenFile {
     path: PathBuf,
     w: McapWriter,
     opened: Instant,
+    /// Modal sets written into it.
+    inputs: u64,
 }
 
 impl OpenFile {
@@ -74,7 +81,6 @@ impl RollingLog {
 
     /// Completes every `<structure>-*.mcap.part` in the directory.
     fn recover(&self) -> Result<()> {
-        let prefix = format!("{}-", self.structure);
         for entry in std::fs::read_dir(&self.dir)? {
             let part = entry?.path();
             let name = part
@@ -84,7 +90,7 @@ impl RollingLog {
             let Some(stem) = name.strip_suffix(".mcap.part") else {
                 continue;
             };
-            if !stem.starts_with(&prefix) {
+            if file_order(&self.structure, &format!("{stem}.mcap")).is_none() {
                 continue;
             }
             let target = part.with_file_name(format!("{stem}.mcap"));
@@ -121,20 +127,51 @@ impl RollingLog {
         Ok(())
     }
 
-    /// Writes one message, opening a file if none is open and rotating after it if the file
+    /// Writes one output, opening a file if none is open and rotating after it if the file
     /// has reached its size or age limit.
     pub fn write(&mut self, topic: &str, log_time: u64, data: &[u8]) -> Result<()> {
+        self.write_message(topic, log_time, data).map(|_| ())
+    }
+
+    /// Writes one received modal set (log time: its reception); returns its position.
+    /// Durable once [`RollingLog::sync`] returns.
+    pub fn write_input(&mut self, log_time: u64, data: &[u8]) -> Result<WalPosition> {
+        let key = topic(&self.structure, "modal");
+        self.write_message(&key, log_time, data)
+    }
+
+    fn write_message(&mut self, topic: &str, log_time: u64, data: &[u8]) -> Result<WalPosition> {
         if self.current.is_none() {
             self.start()?;
         }
+        let modal = topic.ends_with("/modal");
         let f = self.current.as_mut().expect("a log file is open");
         f.w.write(topic, log_time, data)?;
+        let at = WalPosition {
+            file: file_name(&f.path),
+            modal: f.inputs,
+        };
+        if modal {
+            f.inputs += 1;
+        }
         let due_size = f.w.written().is_multiple_of(SIZE_CHECK_EVERY)
             && std::fs::metadata(f.part()).map_or(0, |m| m.len()) >= self.rotate_bytes;
         if due_size || f.opened.elapsed() >= self.rotate_age {
-            self.close_current()?;
+            self.rotate()?;
         }
-        Ok(())
+        Ok(at)
+    }
+
+    /// The position of the next modal set to be written (opens a file if none is open).
+    pub fn next_input(&mut self) -> Result<WalPosition> {
+        if self.current.is_none() {
+            self.start()?;
+        }
+        let f = self.current.as_ref().expect("a log file is open");
+        Ok(WalPosition {
+            file: file_name(&f.path),
+            modal: f.inputs,
+        })
     }
 
     /// Closes the open file if it has reached its age limit (called when idle).
@@ -144,9 +181,55 @@ impl RollingLog {
             .as_ref()
             .is_some_and(|f| f.opened.elapsed() >= self.rotate_age)
         {
-            self.close_current()?;
+            self.rotate()?;
         }
         Ok(())
+    }
+
+    /// Closes the open file and opens the next, so a position always names a file.
+    fn rotate(&mut self) -> Result<()> {
+        self.close_current()?;
+        self.start()
+    }
+
+    /// The modal sets logged at and after `from` (in the complete files of the directory,
+    /// oldest first), with their reception times: what a restart handles again. A file the
+    /// position names that is gone (removed by hand) is reported and skipped.
+    pub fn inputs_after(&self, from: &WalPosition) -> Result<Vec<RecordedMessage>> {
+        let Some(start) = file_order(&self.structure, &from.file) else {
+            anyhow::bail!(
+                "write-ahead position {}: not a log file of {}",
+                from.file,
+                self.structure
+            );
+        };
+        let mut files: Vec<_> = std::fs::read_dir(&self.dir)?
+            .filter_map(|e| {
+                let name = e.ok()?.file_name().to_string_lossy().into_owned();
+                let order = file_order(&self.structure, &name)?;
+                (order >= start).then_some((order, name))
+            })
+            .collect();
+        files.sort();
+        if files.first().is_none_or(|(o, _)| *o != start) {
+            tracing::warn!(
+                "write-ahead log file {} is gone: the sets it held after the checkpoint cannot be handled again",
+                from.file
+            );
+        }
+        let key = topic(&self.structure, "modal");
+        let mut out = Vec::new();
+        for (order, name) in files {
+            let skip = if order == start { from.modal } else { 0 };
+            let path = self.dir.join(&name);
+            let inputs = read_all(&path)
+                .with_context(|| format!("write-ahead log {}", path.display()))?
+                .into_iter()
+                .filter(|m| m.topic == key)
+                .skip(usize::try_from(skip).unwrap_or(usize::MAX));
+            out.extend(inputs);
+        }
+        Ok(out)
     }
 
     /// Makes everything written so far durable.
@@ -184,6 +267,7 @@ impl RollingLog {
             path,
             w,
             opened: Instant::now(),
+            inputs: 0,
         });
         Ok(())
     }
@@ -199,5 +283,51 @@ impl RollingLog {
             self.closed.push(f.path);
         }
         Ok(())
+    }
+}
+
+fn file_name(path: &Path) -> String {
+    path.file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default()
+}
+
+/// The place of log file `name` among `structure`'s (its UTC start stamp, then its
+/// collision counter), or `None` if it is not one: `<structure>-<YYYYmmddTHHMMSS.fffZ>`,
+/// optionally `-<k>`, then `.mcap`. (A prefix test alone would take `lab-frame-…` files for
+/// structure `lab`'s.)
+pub fn file_order(structure: &str, name: &str) -> Option<(String, u64)> {
+    let rest = name.strip_prefix(structure)?.strip_prefix('-')?;
+    let rest = rest.strip_suffix(".mcap")?;
+    let (stamp, k) = match rest.split_once('-') {
+        Some((stamp, k)) => (stamp, k.parse().ok()?),
+        None => (rest, 0),
+    };
+    chrono::NaiveDateTime::parse_from_str(stamp, "%Y%m%dT%H%M%S%.3fZ").ok()?;
+    Some((stamp.to_string(), k))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::file_order;
+
+    #[test]
+    fn log_files_are_told_apart_and_ordered() {
+        let a = file_order("lab", "lab-20261124T101010.123Z.mcap").unwrap();
+        let b = file_order("lab", "lab-20261124T101010.123Z-1.mcap").unwrap();
+        let c = file_order("lab", "lab-20261124T101011.000Z.mcap").unwrap();
+        assert!(a < b && b < c);
+        assert_eq!(
+            file_order("lab", "lab-frame-20261124T101010.123Z.mcap"),
+            None
+        );
+        assert_eq!(
+            file_order("lab", "lab-20261124T101010.123Z.mcap.part"),
+            None
+        );
+        assert_eq!(
+            file_order("frame", "frame-2-20261124T101010.123Z.mcap"),
+            None
+        );
     }
 }

@@ -18,7 +18,7 @@ use prometheus_client::metrics::counter::ConstCounter;
 use prometheus_client::metrics::gauge::ConstGauge;
 use prometheus_client::registry::Registry;
 
-use crate::contract::status::{CrosscheckCounts, QueueStatus, SetCounts};
+use crate::contract::status::{CrosscheckCounts, QueueStatus, SetCounts, WalStatus};
 use crate::contract::{self, Alert, AlertKind, Estimate, Output, Schema};
 
 /// Upper bounds (s) of the update-latency histogram buckets.
@@ -78,6 +78,10 @@ pub struct Status {
     pub publish_errors: u64,
     pub log_file: Option<String>,
     pub last_checkpoint: Option<String>,
+    pub duplicates: u64,
+    pub replayed: u64,
+    pub failed: u64,
+    pub wal: WalStatus,
 }
 
 impl Status {
@@ -100,6 +104,12 @@ impl Status {
 pub struct Shared {
     pub structure: String,
     pub queue_capacity: usize,
+    /// The queue's bound in payload bytes.
+    pub queue_bytes: u64,
+    /// Payloads larger than this are rejected unread.
+    pub max_payload: usize,
+    /// When the tracking loop last went round (ms since `started`), for the watchdog.
+    pub heartbeat: AtomicU64,
     pub started: chrono::DateTime<chrono::Utc>,
     /// Sets received from Zenoh (queued or dropped).
     pub received: AtomicU64,
@@ -107,22 +117,49 @@ pub struct Shared {
     pub dropped: AtomicU64,
     /// Sets waiting in the queue.
     pub depth: AtomicU64,
+    /// Bytes of the payloads waiting in the queue.
+    pub queued_bytes: AtomicU64,
     pub latency: Histogram,
     pub status: Mutex<Status>,
 }
 
 impl Shared {
-    pub fn new(structure: &str, queue_capacity: usize) -> Arc<Self> {
+    pub fn new(
+        structure: &str,
+        queue_capacity: usize,
+        queue_bytes: u64,
+        max_payload: usize,
+    ) -> Arc<Self> {
         Arc::new(Self {
             structure: structure.to_string(),
             queue_capacity,
+            queue_bytes,
+            max_payload,
+            heartbeat: AtomicU64::new(0),
             started: chrono::Utc::now(),
             received: AtomicU64::new(0),
             dropped: AtomicU64::new(0),
             depth: AtomicU64::new(0),
+            queued_bytes: AtomicU64::new(0),
             latency: Histogram::default(),
             status: Mutex::new(Status::default()),
         })
+    }
+
+    /// Notes that the tracking loop is alive.
+    pub fn beat(&self) {
+        let ms = (chrono::Utc::now() - self.started)
+            .num_milliseconds()
+            .max(0) as u64;
+        self.heartbeat.store(ms, Ordering::Relaxed);
+    }
+
+    /// How long ago the tracking loop last went round.
+    pub fn since_beat(&self) -> Duration {
+        let now = (chrono::Utc::now() - self.started)
+            .num_milliseconds()
+            .max(0) as u64;
+        Duration::from_millis(now.saturating_sub(self.heartbeat.load(Ordering::Relaxed)))
     }
 
     fn status(&self) -> Status {
@@ -159,6 +196,9 @@ impl Shared {
                 rejected: st.rejected,
                 unconverged: st.unconverged,
                 cold_starts: st.cold_starts,
+                duplicates: st.duplicates,
+                replayed: st.replayed,
+                failed: st.failed,
             },
             update_mean_ms: self.latency.mean_ms(),
             last_set_time: st.last_set_time,
@@ -171,6 +211,7 @@ impl Shared {
             publish_errors: st.publish_errors,
             log_file: st.log_file,
             last_checkpoint: st.last_checkpoint,
+            wal: st.wal,
         }
     }
 }
@@ -184,7 +225,7 @@ impl Collector for Structures {
     fn encode(&self, mut enc: DescriptorEncoder) -> std::fmt::Result {
         let all: Vec<(&Shared, Status)> = self.0.iter().map(|s| (&**s, s.status())).collect();
         type Getter = fn(&Shared, &Status) -> u64;
-        let counters: [(&str, &str, Getter); 6] = [
+        let counters: [(&str, &str, Getter); 10] = [
             (
                 "boltwatch_sets_received",
                 "Modal sets received over Zenoh.",
@@ -214,6 +255,26 @@ impl Collector for Structures {
                 "boltwatch_crosschecks_skipped",
                 "Cross-checks skipped: the previous one was still running.",
                 |_, st| st.crosschecks_skipped,
+            ),
+            (
+                "boltwatch_sets_duplicate",
+                "Modal sets skipped as already handled (re-delivered after a restart).",
+                |_, st| st.duplicates,
+            ),
+            (
+                "boltwatch_sets_replayed",
+                "Modal sets handled again at start from the write-ahead log.",
+                |_, st| st.replayed,
+            ),
+            (
+                "boltwatch_sets_failed",
+                "Modal sets rejected because tracking them failed (an error or a panic).",
+                |_, st| st.failed,
+            ),
+            (
+                "boltwatch_wal_syncs",
+                "Group commits (fsyncs) of the write-ahead log.",
+                |_, st| st.wal.syncs,
             ),
         ];
         for (name, help, get) in counters {

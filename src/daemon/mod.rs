@@ -26,12 +26,12 @@ use std::time::Duration;
 use anyhow::{Context, Result, anyhow, bail};
 use zenoh::Wait;
 
-use crate::contract::to_wire;
+use crate::contract::{Checkpoint, to_wire};
 use crate::io::checkpoint;
 use crate::io::mcap::topic;
 use crate::io::model::load_structure;
 use crate::io::zenoh::{session_config, zerr};
-use crate::pipeline::Tracker;
+use crate::pipeline::{Tracker, TrackerState};
 use crate::settings::Settings;
 use metrics::Shared;
 use worker::{Input, LiveSink, Worker, enqueue};
@@ -65,10 +65,19 @@ pub async fn run(settings: Settings) -> Result<()> {
         let structure_model = std::sync::Arc::new(load_structure(s)?);
         let model = structure_model.1.clone();
         let ckpt = d.state_dir.join(format!("{}.checkpoint.json", s.name));
-        let tracker = match checkpoint::read(&ckpt)
+        let mut resume_from = None;
+        let mut tracker = match checkpoint::read::<Checkpoint<TrackerState>>(&ckpt)
             .with_context(|| format!("{} (move it away to start afresh)", ckpt.display()))?
         {
             Some(v) => {
+                resume_from = v.wal.clone();
+                if resume_from.is_none() {
+                    tracing::warn!(
+                        structure = s.name,
+                        "checkpoint {} has no write-ahead position (written before there was one): sets logged after it are not handled again",
+                        ckpt.display()
+                    );
+                }
                 let t =
                     Tracker::restore(model, settings.tracker.clone(), v).with_context(|| {
                         format!(
@@ -86,14 +95,22 @@ pub async fn run(settings: Settings) -> Result<()> {
             }
             None => Tracker::new(model, settings.tracker.clone())?,
         };
+        tracker.set_max_future(Some(chrono::TimeDelta::milliseconds(
+            (d.max_future_s * 1e3).round() as i64,
+        )));
         let log = log::RollingLog::open(
             &d.state_dir.join("log"),
             &s.name,
             d.log_rotate_mib << 20,
             Duration::from_secs_f64(d.log_rotate_hours * 3600.0),
         )?;
-        let shared = Shared::new(&s.name, d.queue);
-        let worker = Worker::new(
+        let shared = Shared::new(
+            &s.name,
+            d.queue,
+            (d.queue_mib as u64) << 20,
+            d.max_payload_bytes,
+        );
+        let mut worker = Worker::new(
             structure_model,
             tracker,
             LiveSink {
@@ -113,7 +130,21 @@ pub async fn run(settings: Settings) -> Result<()> {
                 .name(format!("track-{name}"))
                 .spawn(move || {
                     crate::core::sequential_numerics();
-                    let r = worker.run(rx);
+                    // A panic outside the per-set guards (in the resume, a checkpoint, the
+                    // log) must not leave the process up with this structure dark.
+                    let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                        worker.resume(resume_from)?;
+                        worker.run(rx)
+                    }))
+                    .unwrap_or_else(|p| {
+                        Err(anyhow!(
+                            "the tracking thread panicked: {}",
+                            p.downcast_ref::<&str>()
+                                .map(|s| s.to_string())
+                                .or_else(|| p.downcast_ref::<String>().cloned())
+                                .unwrap_or_default()
+                        ))
+                    });
                     let _ = done.send((name, r));
                 })?,
         );
@@ -121,9 +152,7 @@ pub async fn run(settings: Settings) -> Result<()> {
         subscribers.push(
             session
                 .declare_subscriber(topic(&s.name, "modal"))
-                .callback(move |sample| {
-                    enqueue(&cb_tx, &cb_shared, sample.payload().to_bytes().into_owned());
-                })
+                .callback(move |sample| enqueue(&cb_tx, &cb_shared, sample.payload()))
                 .await
                 .map_err(zerr(format!(
                     "cannot subscribe to {}",

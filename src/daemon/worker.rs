@@ -1,34 +1,53 @@
 //! One structure's tracking thread: takes modal sets from the bounded queue the Zenoh
-//! subscriber fills, runs the [`Tracker`], publishes its outputs over Zenoh, writes inputs
-//! and outputs into the rolling log, checkpoints, and hands cross-checks to a thread of
-//! their own so a slow one never holds up tracking.
+//! subscriber fills, makes them durable in the write-ahead log (one fsync for all the sets
+//! waiting: group commit), runs the [`Tracker`], publishes its outputs over Zenoh, writes
+//! them into the rolling log, checkpoints, and hands cross-checks to a thread of their own
+//! so a slow one never holds up tracking.
+//!
+//! No input stops it: an error or a panic while tracking one set, or while writing that
+//! set's outputs, rejects the set (published on `rejected`, with the error) and the thread
+//! goes on, the tracker's state as it was before the set. Only a failure to write the log or
+//! a checkpoint (a full or broken disk) is fatal: the thread returns the error and the
+//! process exits non-zero, so systemd restarts it.
 
 use std::collections::HashMap;
+use std::panic::AssertUnwindSafe;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
-use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TryRecvError, TrySendError};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use chrono::{DateTime, Utc};
 use zenoh::Wait;
+use zenoh::bytes::ZBytes;
 use zenoh::qos::CongestionControl;
 
 use super::log::RollingLog;
 use super::metrics::Shared;
-use crate::contract::{Output, Rejected, rfc3339};
+use crate::contract::modal_set::Rejection;
+use crate::contract::rejected::REJECTED_PAYLOAD_LIMIT;
+use crate::contract::wire::digest_parts;
+use crate::contract::{Checkpoint, Output, Rejected, Schema, WalPosition, rfc3339};
 use crate::io::checkpoint;
 use crate::io::driver::{JobKind, OffPath, Pace, Sink, StructureModel, dispatch, emit};
-use crate::io::mcap::{to_ns, topic};
-use crate::pipeline::Tracker;
+use crate::io::mcap::{from_ns, to_ns, topic};
 use crate::pipeline::crosscheck::CrosscheckConfig;
+use crate::pipeline::{Action, Tracker, TrackerState};
 
 /// What the subscriber hands the worker.
 pub enum Input {
     Set {
         received: DateTime<Utc>,
         payload: Vec<u8>,
+    },
+    /// A payload over `daemon.max_payload_bytes`: only its start and digest were kept.
+    Oversize {
+        received: DateTime<Utc>,
+        size: usize,
+        head: Vec<u8>,
+        digest: u128,
     },
     /// Finish: every set queued before this one is processed first.
     Shutdown,
@@ -39,6 +58,9 @@ const IDLE_TICK: Duration = Duration::from_millis(200);
 
 /// How long shutdown waits for a running cross-check.
 const CROSSCHECK_SHUTDOWN_WAIT: Duration = Duration::from_secs(60);
+
+/// The most sets made durable by one fsync (group commit): all that wait, up to this.
+const GROUP_MAX: usize = 256;
 
 /// Where a structure's outputs go live: Zenoh, the rolling log, the status.
 pub struct LiveSink {
@@ -85,6 +107,8 @@ pub struct Worker {
     last_checkpoint: Instant,
     dirty: bool,
     dropped_reported: u64,
+    /// The first logged set not yet handled (what a checkpoint records).
+    handled_upto: Option<WalPosition>,
 }
 
 impl Worker {
@@ -112,6 +136,7 @@ impl Worker {
             last_checkpoint: Instant::now(),
             dirty: false,
             dropped_reported: 0,
+            handled_upto: None,
         };
         w.update_status();
         Ok(w)
@@ -121,16 +146,58 @@ impl Worker {
         &self.out.shared.structure
     }
 
+    /// Handles again the sets logged at and after `from` (the checkpoint's write-ahead
+    /// position; `None` for a fresh state), without logging them again, then checkpoints
+    /// so that a further restart starts after them. Their outputs are published again,
+    /// byte-identical and with the same ids as before the crash (the tracker is
+    /// deterministic and resumes bit for bit).
+    pub fn resume(&mut self, from: Option<WalPosition>) -> Result<()> {
+        if let Some(pos) = from {
+            let inputs = self.out.log.inputs_after(&pos)?;
+            let n = inputs.len() as u64;
+            for m in inputs {
+                self.handle(from_ns(m.log_time), &m.data)?;
+            }
+            self.out.shared.with_status(|st| st.replayed += n);
+            if n > 0 {
+                tracing::info!(
+                    structure = self.structure(),
+                    sets = n,
+                    "handled again the sets logged after the checkpoint (write-ahead log from {} #{})",
+                    pos.file,
+                    pos.modal
+                );
+            }
+        }
+        self.handled_upto = Some(self.out.log.next_input()?);
+        self.checkpoint()
+    }
+
     /// Runs until [`Input::Shutdown`] (or the queue closes), then waits for a running
     /// cross-check, checkpoints and closes the log.
     pub fn run(mut self, rx: Receiver<Input>) -> Result<()> {
         loop {
+            self.out.shared.beat();
             match rx.recv_timeout(IDLE_TICK) {
-                Ok(Input::Set { received, payload }) => {
-                    self.out.shared.depth.fetch_sub(1, Ordering::Relaxed);
-                    self.handle(received, &payload)?;
-                }
                 Ok(Input::Shutdown) | Err(RecvTimeoutError::Disconnected) => break,
+                Ok(first) => {
+                    let mut batch = vec![first];
+                    let mut stop = false;
+                    while batch.len() < GROUP_MAX {
+                        match rx.try_recv() {
+                            Ok(Input::Shutdown) => {
+                                stop = true;
+                                break;
+                            }
+                            Ok(input) => batch.push(input),
+                            Err(TryRecvError::Empty | TryRecvError::Disconnected) => break,
+                        }
+                    }
+                    self.commit_and_handle(batch)?;
+                    if stop {
+                        break;
+                    }
+                }
                 Err(RecvTimeoutError::Timeout) => self.out.log.tick()?,
             }
             self.lane.emit_ready(&mut self.out)?;
@@ -154,20 +221,160 @@ impl Worker {
         Ok(())
     }
 
+    /// Write-ahead: logs every set of `batch`, makes them durable with one fsync, then
+    /// handles them in order.
+    fn commit_and_handle(&mut self, batch: Vec<Input>) -> Result<()> {
+        let shared = self.out.shared.clone();
+        let mut positions = Vec::with_capacity(batch.len());
+        for input in &batch {
+            let pos = match input {
+                Input::Set { received, payload } => {
+                    shared.depth.fetch_sub(1, Ordering::Relaxed);
+                    shared
+                        .queued_bytes
+                        .fetch_sub(payload.len() as u64, Ordering::Relaxed);
+                    Some(self.out.log.write_input(to_ns(*received)?, payload)?)
+                }
+                Input::Oversize { .. } => {
+                    shared.depth.fetch_sub(1, Ordering::Relaxed);
+                    None
+                }
+                Input::Shutdown => None,
+            };
+            positions.push(pos);
+        }
+        let logged = positions.iter().flatten().count() as u64;
+        if logged > 0 {
+            let t = Instant::now();
+            self.out.log.sync()?;
+            let ms = t.elapsed().as_secs_f64() * 1e3;
+            shared.with_status(|st| {
+                st.wal.syncs += 1;
+                st.wal.sets += logged;
+                st.wal.sync_ms += ms;
+            });
+        }
+        for (input, pos) in batch.into_iter().zip(positions) {
+            match input {
+                Input::Set { received, payload } => {
+                    self.handle(received, &payload)?;
+                    if let Some(p) = pos {
+                        self.handled_upto = Some(WalPosition {
+                            file: p.file,
+                            modal: p.modal + 1,
+                        });
+                    }
+                }
+                Input::Oversize {
+                    received,
+                    size,
+                    head,
+                    digest,
+                } => {
+                    let rej = Rejection {
+                        field: "payload".into(),
+                        reason: format!(
+                            "{size} bytes exceeds the limit of {} bytes (daemon.max_payload_bytes)",
+                            shared.max_payload
+                        ),
+                    };
+                    let o = self.tracker.refuse(received, &rej, &head, size, digest);
+                    self.publish_guarded(received, &head, vec![Action::Publish(o)])?;
+                }
+                Input::Shutdown => {}
+            }
+            shared.beat();
+        }
+        self.update_status();
+        Ok(())
+    }
+
+    /// Tracks one set: a panic in the tracker rejects the set and restores the state from
+    /// before it.
     fn handle(&mut self, received: DateTime<Utc>, payload: &[u8]) -> Result<()> {
-        let s = self.structure().to_string();
-        self.out
-            .log
-            .write(&topic(&s, "modal"), to_ns(received)?, payload)?;
+        let before = self.tracker.state().clone();
         let start = Instant::now();
-        let actions = self.tracker.handle(received, payload);
+        let tracked =
+            std::panic::catch_unwind(AssertUnwindSafe(|| self.tracker.handle(received, payload)));
         self.out.shared.latency.observe(start.elapsed());
         self.dirty = true;
-        let d = dispatch(&s, actions, &mut self.lane, &mut self.out, Pace::Live)?;
-        self.update_status();
-        if d.checkpoint_due {
-            self.checkpoint()?;
-        }
+        let actions = match tracked {
+            Ok(actions) => actions,
+            Err(panic) => {
+                let why = panic_message(&*panic);
+                tracing::error!(
+                    structure = self.structure(),
+                    "tracking a set panicked ({why}); the set is rejected and the state restored"
+                );
+                self.restore(before)?;
+                self.out.shared.with_status(|st| st.failed += 1);
+                let rej = Rejection {
+                    field: "payload".into(),
+                    reason: format!(
+                        "tracking this set failed (internal error: {why}); the state is as before it"
+                    ),
+                };
+                self.tracker.reject(received, &rej, payload)
+            }
+        };
+        self.publish_guarded(received, payload, actions)
+    }
+
+    /// Carries out one set's actions; an error or a panic while writing its outputs
+    /// becomes the set's rejection. Only a failure to publish that rejection is fatal.
+    fn publish_guarded(
+        &mut self,
+        received: DateTime<Utc>,
+        payload: &[u8],
+        actions: Vec<Action>,
+    ) -> Result<()> {
+        let s = self.structure().to_string();
+        let done = std::panic::catch_unwind(AssertUnwindSafe(|| {
+            dispatch(&s, actions, &mut self.lane, &mut self.out, Pace::Live)
+        }));
+        let failure = match done {
+            Ok(Ok(d)) => {
+                if d.checkpoint_due {
+                    self.checkpoint()?;
+                }
+                return Ok(());
+            }
+            Ok(Err(e)) => format!("{e:#}"),
+            Err(panic) => format!("internal error: {}", panic_message(&*panic)),
+        };
+        tracing::error!(
+            structure = s,
+            "writing the outputs of a set failed: {failure}"
+        );
+        self.out.shared.with_status(|st| st.failed += 1);
+        let r = Rejected::payload(
+            &s,
+            received,
+            "payload",
+            &format!("writing this set's outputs failed: {failure}"),
+            payload,
+        );
+        emit(&mut self.out, &Output::Rejected(Box::new(r)))
+            .context("cannot even publish the rejection of a set whose outputs failed")
+    }
+
+    /// Rebuilds the tracker from `state` (after a panic mid-update), without the eigen
+    /// solver's warm block, which the panic may have left half-written.
+    fn restore(&mut self, state: TrackerState) -> Result<()> {
+        let model = self.tracker.model().clone();
+        let cfg = self.tracker.config().clone();
+        let max_future = self.tracker.max_future();
+        self.tracker = Tracker::restore(
+            model,
+            cfg,
+            Checkpoint {
+                schema: Schema::new(),
+                state,
+                eigen_block: None,
+                wal: None,
+            },
+        )?;
+        self.tracker.set_max_future(max_future);
         Ok(())
     }
 
@@ -182,17 +389,21 @@ impl Worker {
         let n = dropped - self.dropped_reported;
         self.dropped_reported = dropped;
         let reason = format!(
-            "queue full: {n} modal set(s) dropped unprocessed ({dropped} since start; the queue holds {})",
-            shared.queue_capacity
+            "queue full: {n} modal set(s) dropped unprocessed ({dropped} since start; the queue holds {} sets or {} MiB)",
+            shared.queue_capacity,
+            shared.queue_bytes >> 20
         );
-        let r = Rejected::dropped(&shared.structure, Utc::now(), n, reason);
+        let r = Rejected::dropped(&shared.structure, Utc::now(), n, dropped, reason);
         emit(&mut self.out, &Output::Rejected(Box::new(r)))
     }
 
-    /// Makes the log durable, then writes the tracker's state atomically.
+    /// Makes the log durable, then writes the tracker's state, with the write-ahead
+    /// position of the first set not yet handled, atomically.
     fn checkpoint(&mut self) -> Result<()> {
         self.out.log.sync()?;
-        checkpoint::write_atomic(&self.checkpoint_path, &self.tracker.checkpoint())
+        let mut c = self.tracker.checkpoint();
+        c.wal = self.handled_upto.clone();
+        checkpoint::write_atomic(&self.checkpoint_path, &c)
             .with_context(|| format!("checkpoint of {}", self.structure()))?;
         self.last_checkpoint = Instant::now();
         self.dirty = false;
@@ -211,24 +422,65 @@ impl Worker {
             st.rejected = t.rejected;
             st.unconverged = t.unconverged;
             st.cold_starts = t.cold_starts;
+            st.duplicates = t.duplicates;
             st.last_set_time = t.last_time.map(rfc3339);
             st.log_file = log;
         });
     }
 }
 
-/// The subscriber side of the queue: `try_send`, and count a set that does not fit.
-pub fn enqueue(tx: &SyncSender<Input>, shared: &Shared, payload: Vec<u8>) {
+/// What a caught panic said.
+fn panic_message(panic: &(dyn std::any::Any + Send)) -> String {
+    panic
+        .downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| panic.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "a panic without a message".into())
+}
+
+/// The subscriber side of the queue: a payload over the size limit is passed on as its
+/// start and digest only; a set that does not fit the queue (by count or by bytes) is
+/// dropped and counted.
+pub fn enqueue(tx: &SyncSender<Input>, shared: &Shared, payload: &ZBytes) {
     shared.received.fetch_add(1, Ordering::Relaxed);
+    let received = Utc::now();
+    let size = payload.len();
+    let input = if size > shared.max_payload {
+        let mut head = Vec::with_capacity(REJECTED_PAYLOAD_LIMIT);
+        for slice in payload.slices() {
+            let room = REJECTED_PAYLOAD_LIMIT - head.len();
+            head.extend_from_slice(&slice[..slice.len().min(room)]);
+        }
+        Input::Oversize {
+            received,
+            size,
+            head,
+            digest: digest_parts(payload.slices()),
+        }
+    } else {
+        let queued = shared.queued_bytes.load(Ordering::Relaxed);
+        if queued + size as u64 > shared.queue_bytes {
+            shared.dropped.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+        shared
+            .queued_bytes
+            .fetch_add(size as u64, Ordering::Relaxed);
+        Input::Set {
+            received,
+            payload: payload.to_bytes().into_owned(),
+        }
+    };
     shared.depth.fetch_add(1, Ordering::Relaxed);
-    let input = Input::Set {
-        received: Utc::now(),
-        payload,
+    let bytes = match &input {
+        Input::Set { payload, .. } => payload.len() as u64,
+        _ => 0,
     };
     match tx.try_send(input) {
         Ok(()) => {}
         Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) => {
             shared.depth.fetch_sub(1, Ordering::Relaxed);
+            shared.queued_bytes.fetch_sub(bytes, Ordering::Relaxed);
             shared.dropped.fetch_add(1, Ordering::Relaxed);
         }
     }

@@ -62,7 +62,12 @@ pub fn topic(structure: &str, suffix: &str) -> String {
 pub fn to_ns(t: DateTime<Utc>) -> Result<u64> {
     t.timestamp_nanos_opt()
         .and_then(|n| u64::try_from(n).ok())
-        .ok_or_else(|| anyhow!("time {t} is outside MCAP's range (1970 to 2554)"))
+        .ok_or_else(|| {
+            anyhow!(
+                "time {t} is outside the range every output format holds ({})",
+                crate::contract::wire::TIME_RANGE
+            )
+        })
 }
 
 /// The time of an MCAP log time (saturating at 2262, the end of chrono's nanosecond range).

@@ -101,6 +101,7 @@ pub fn crosscheck(
     });
     let mut c = Crosscheck {
         schema: Schema::new(),
+        id: crate::contract::output_id(&model.name, req.set.time, "crosscheck", 0),
         structure: model.name.clone(),
         time: req.set.time,
         sigma_c,

@@ -24,7 +24,7 @@ use crate::contract::modal_set::{ModalSet, Rejection, ValidationContext, parse_m
 use crate::contract::stiffness::{FilteredLevel, Method, ParameterEstimate};
 use crate::contract::{
     Alert, AlertDetail, AlertKind, AlertLevel, Checkpoint, EigenBlock, Estimate, ModeComparison,
-    Output, Rejected, Schema, finite,
+    Output, Rejected, Schema, digest, finite, output_id,
 };
 use crate::core::model::{Model, ParameterKind};
 use crate::core::stats::{Z95, chi2_bound, chi2_dof};
@@ -105,7 +105,19 @@ pub struct TrackerState {
     pub unconverged: u64,
     pub cold_starts: u64,
     pub last_crosscheck: Option<(u64, DateTime<Utc>)>,
+    /// Payloads skipped because they had been handled already (a re-delivery).
+    #[serde(default)]
+    pub duplicates: u64,
+    /// Content digests of the last [`DEDUP_WINDOW`] payloads handled, oldest first (in
+    /// hex: JSON numbers do not hold 128 bits).
+    #[serde(default, with = "digests")]
+    pub seen: std::collections::VecDeque<u128>,
 }
+
+/// How many handled payloads the tracker remembers to recognise a re-delivery (a sensor's
+/// advanced publisher re-sends its cache to a restarted daemon): at least the cache of any
+/// publisher feeding it. An older re-delivery is rejected as out of order, never re-used.
+pub const DEDUP_WINDOW: usize = 1024;
 
 /// One structure's tracker.
 pub struct Tracker {
@@ -120,6 +132,8 @@ pub struct Tracker {
     k_nominal: Vec<Option<f64>>,
     /// The model's channel names, in model order (for validation).
     channel_names: Vec<String>,
+    /// How far ahead of its reception a set may be stamped (live only).
+    max_future: Option<chrono::TimeDelta>,
 }
 
 impl Tracker {
@@ -148,6 +162,8 @@ impl Tracker {
             unconverged: 0,
             cold_starts: 0,
             last_crosscheck: None,
+            duplicates: 0,
+            seen: Default::default(),
         };
         Self::with_state(model, cfg, state)
     }
@@ -228,7 +244,18 @@ impl Tracker {
             is_connection,
             k_nominal,
             channel_names: model_channel_names,
+            max_future: None,
         })
+    }
+
+    /// Rejects sets stamped more than `limit` after their reception (the live daemon's
+    /// `daemon.max_future_s`; a replay has no clock to compare with).
+    pub fn set_max_future(&mut self, limit: Option<chrono::TimeDelta>) {
+        self.max_future = limit;
+    }
+
+    pub fn max_future(&self) -> Option<chrono::TimeDelta> {
+        self.max_future
     }
 
     pub fn model(&self) -> &Model {
@@ -250,36 +277,71 @@ impl Tracker {
             schema: Schema::new(),
             state: self.state.clone(),
             eigen_block: self.mm.evaluator.warm_state().map(|b| EigenBlock::from(&b)),
+            wal: None,
         }
     }
 
     /// Handles one raw payload received at `received` (the driver's clock or the
-    /// recording's log time, used only in rejections).
+    /// recording's log time; used in rejections, and live as the clock `time` may not be
+    /// far ahead of). A payload handled before (the same bytes, within the last
+    /// [`DEDUP_WINDOW`]) is skipped and counted in [`TrackerState::duplicates`]: no output.
     pub fn handle(&mut self, received: DateTime<Utc>, payload: &[u8]) -> Vec<Action> {
+        let digest = digest(payload);
+        if self.state.seen.contains(&digest) {
+            self.state.duplicates += 1;
+            return Vec::new();
+        }
+        if self.state.seen.len() >= DEDUP_WINDOW {
+            self.state.seen.pop_front();
+        }
+        self.state.seen.push_back(digest);
         let structures = [self.model.name.as_str()];
         let ctx = ValidationContext {
             structures: &structures,
             model_channels: &self.channel_names,
             last_time: self.state.last_time,
             allow_equal_time: self.cfg.allow_equal_time,
+            max_future: self.max_future.map(|ahead| (received, ahead)),
         };
         match parse_modal_set(payload, &ctx) {
             Ok(set) => self.handle_set(set, received, payload),
-            Err(rej) => {
-                self.state.rejected += 1;
-                vec![self.rejection(received, &rej, payload)]
-            }
+            Err(rej) => self.reject(received, &rej, payload),
         }
     }
 
-    fn rejection(&self, received: DateTime<Utc>, rej: &Rejection, payload: &[u8]) -> Action {
-        Action::Publish(Output::Rejected(Box::new(Rejected::payload(
+    /// Rejects `payload` for `rej`: counted, published, the state otherwise unchanged.
+    pub fn reject(
+        &mut self,
+        received: DateTime<Utc>,
+        rej: &Rejection,
+        payload: &[u8],
+    ) -> Vec<Action> {
+        self.state.rejected += 1;
+        vec![Action::Publish(Output::Rejected(Box::new(
+            Rejected::payload(&self.model.name, received, &rej.field, &rej.reason, payload),
+        )))]
+    }
+
+    /// Rejects a payload the driver did not keep whole (an oversized one): `size` bytes
+    /// with content digest `digest`, of which `head` was kept.
+    pub fn refuse(
+        &mut self,
+        received: DateTime<Utc>,
+        rej: &Rejection,
+        head: &[u8],
+        size: usize,
+        digest: u128,
+    ) -> Output {
+        self.state.rejected += 1;
+        Output::Rejected(Box::new(Rejected::cut(
             &self.model.name,
             received,
             &rej.field,
             &rej.reason,
-            payload,
-        ))))
+            head,
+            size,
+            digest,
+        )))
     }
 
     fn handle_set(
@@ -294,14 +356,33 @@ impl Tracker {
             Err(e) => {
                 // The model could not be evaluated for this set (e.g. more modes than the
                 // model resolves): a rejection, state unchanged.
-                self.state.rejected += 1;
                 let rej = Rejection {
                     field: "modes".into(),
                     reason: format!("update failed: {e}"),
                 };
-                return vec![self.rejection(received, &rej, payload)];
+                return self.reject(received, &rej, payload);
             }
         };
+        // Nothing non-finite enters the state, the filters or a checkpoint: a set whose
+        // update gives a non-finite θ, σ or ε (extreme but finite inputs can) is rejected.
+        let std = res.std();
+        let bad = |what: &str, v: &[f64]| {
+            v.iter()
+                .position(|x| !x.is_finite())
+                .map(|l| format!("{what}[{l}] = {}", v[l]))
+        };
+        if let Some(what) = bad("θ", &res.theta)
+            .or_else(|| bad("σ", &std))
+            .or_else(|| bad("ε", &[res.epsilon()]))
+        {
+            let rej = Rejection {
+                field: "modes".into(),
+                reason: format!(
+                    "the update on this set is not finite ({what}); its frequencies, shapes or uncertainties are out of the model's range"
+                ),
+            };
+            return self.reject(received, &rej, payload);
+        }
         let mut actions = Vec::new();
         let st = &mut self.state;
         st.accepted += 1;
@@ -309,7 +390,6 @@ impl Tracker {
         let origin = *st.origin.get_or_insert(set.time);
         let days = (set.time - origin).num_milliseconds() as f64 / 86_400_000.0;
         let converged = res.converged();
-        let std = res.std();
         if !warm {
             st.cold_starts += 1;
         }
@@ -373,6 +453,7 @@ impl Tracker {
             .collect();
         actions.push(Action::Publish(Output::Estimate(Box::new(Estimate {
             schema: Schema::new(),
+            id: output_id(&self.model.name, set.time, "stiffness", 0),
             structure: self.model.name.clone(),
             time: set.time,
             method: Method::ModeMatching,
@@ -389,9 +470,12 @@ impl Tracker {
         }))));
         // Alerts.
         let st = &mut self.state;
-        let alert = |connection: Option<String>, kind, level, confidence, message, detail| {
+        let mut n_alerts = 0;
+        let mut alert = |connection: Option<String>, kind, level, confidence, message, detail| {
+            n_alerts += 1;
             Action::Publish(Output::Alert(Box::new(Alert {
                 schema: Schema::new(),
+                id: output_id(&self.model.name, set.time, "alert", n_alerts - 1),
                 structure: self.model.name.clone(),
                 time: set.time,
                 connection,
@@ -579,4 +663,26 @@ pub fn measured_data(set: &ModalSet, model: &Model, w_psi: f64) -> MeasuredData 
         })
         .collect();
     MeasuredData::new(&raw, w_psi)
+}
+
+/// Serde for [`TrackerState::seen`]: each digest as 32 hex digits.
+mod digests {
+    use std::collections::VecDeque;
+
+    use serde::de::Error;
+    use serde::{Deserialize, Deserializer, Serializer};
+
+    pub fn serialize<S: Serializer>(v: &VecDeque<u128>, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_seq(v.iter().map(|d| format!("{d:032x}")))
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<VecDeque<u128>, D::Error> {
+        Vec::<String>::deserialize(d)?
+            .iter()
+            .map(|h| {
+                u128::from_str_radix(h, 16)
+                    .map_err(|e| D::Error::custom(format!("digest `{h}`: {e}")))
+            })
+            .collect()
+    }
 }

@@ -103,6 +103,7 @@ pub fn diagnosis_alert(
     };
     Alert {
         schema: Schema::new(),
+        id: crate::contract::output_id(&model.name, req.set.time, "diagnosis", 0),
         structure: model.name.clone(),
         time: req.set.time,
         connection: None,

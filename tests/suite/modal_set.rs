@@ -42,6 +42,7 @@ fn parse_with(
         model_channels: &channels,
         last_time: last,
         allow_equal_time: allow_equal,
+        max_future: None,
     };
     parse_modal_set(payload, &ctx)
 }
@@ -573,4 +574,103 @@ fn arbitrary_bytes_never_panic() {
         }
         let _ = parse_bytes(&bytes);
     }
+}
+
+/// Times outside the common range of every output format (MCAP's unsigned and chrono's
+/// signed 64-bit nanoseconds: 1970 to 2262) are rejected by `time`, never reach an output.
+#[test]
+fn rejects_times_no_output_format_holds() {
+    for time in [
+        "2300-01-01T00:00:00Z",
+        "1969-12-31T23:59:59Z",
+        "9999-12-31T23:59:59Z",
+    ] {
+        let v = with(|v| v["time"] = json!(time));
+        assert_rejected(parse(&v), "time", &["outside the range", "2262"]);
+    }
+    let v = with(|v| v["time"] = json!("2262-04-11T23:47:16Z"));
+    assert!(
+        parse(&v).is_ok(),
+        "the last whole second of the range is accepted"
+    );
+}
+
+/// Live, a set stamped more than the allowed margin after its reception is rejected by
+/// `time` with both times and the configuration key.
+#[test]
+fn rejects_times_ahead_of_the_receiver_clock() {
+    let channels = model_channels();
+    let at = |received: &str, ahead_s: i64| {
+        let ctx = ValidationContext {
+            structures: STRUCTURES,
+            model_channels: &channels,
+            last_time: None,
+            allow_equal_time: false,
+            max_future: Some((t(received), chrono::TimeDelta::seconds(ahead_s))),
+        };
+        parse_modal_set(full().to_string().as_bytes(), &ctx)
+    };
+    let stamped = full()["time"].as_str().unwrap().to_string();
+    let two_days_before = (t(&stamped) - chrono::TimeDelta::days(2)).to_rfc3339();
+    assert_rejected(
+        at(&two_days_before, 300),
+        "time",
+        &[
+            "ahead of the receiver's clock",
+            "172800 s",
+            "daemon.max_future_s",
+        ],
+    );
+    let a_minute_before = (t(&stamped) - chrono::TimeDelta::seconds(60)).to_rfc3339();
+    assert!(at(&a_minute_before, 300).is_ok(), "within the margin");
+}
+
+/// Uncertainties below the floor (a weight 1/σ² that would overflow) and shapes without a
+/// direction are rejected by field.
+#[test]
+fn rejects_degenerate_uncertainties_and_shapes() {
+    let v = with(|v| v["modes"][1]["frequency_cov"] = json!(1e-300));
+    assert_rejected(parse(&v), "modes[1].frequency_cov", &["below the floor"]);
+    let v = with(|v| v["modes"][0]["shape_nsd"] = json!(1e-9));
+    assert_rejected(parse(&v), "modes[0].shape_nsd", &["below the floor"]);
+    let v = with(|v| {
+        let n = v["modes"][0]["shape"].as_array().unwrap().len();
+        v["modes"][0]["shape"] = json!(vec![0.0; n]);
+    });
+    assert_rejected(
+        parse(&v),
+        "modes[0].shape",
+        &["all measured entries are zero"],
+    );
+    let v = with(|v| {
+        let n = v["modes"][0]["shape"].as_array().unwrap().len();
+        v["modes"][0]["shape"] = json!(vec![1e-310; n]);
+    });
+    assert_rejected(parse(&v), "modes[0].shape", &["cannot be normalized"]);
+    let v = with(|v| {
+        let n = v["modes"][0]["shape"].as_array().unwrap().len();
+        v["modes"][0]["shape"] = json!(vec![1e200; n]);
+    });
+    assert_rejected(parse(&v), "modes[0].shape", &["cannot be normalized"]);
+}
+
+/// A reason or a field that would repeat a long attacker string is capped.
+#[test]
+fn rejection_reasons_and_fields_are_capped() {
+    let long = "x".repeat(100_000);
+    let v = with(|v| v["structure"] = json!(long));
+    let r = parse(&v).unwrap_err();
+    assert!(
+        r.reason.len() <= boltwatch::contract::modal_set::REASON_LIMIT,
+        "{}",
+        r.reason.len()
+    );
+    let v = with(|v| v[long.as_str()] = json!(1));
+    let r = parse(&v).unwrap_err();
+    assert!(
+        r.field.len() <= boltwatch::contract::modal_set::FIELD_LIMIT,
+        "{}",
+        r.field.len()
+    );
+    assert!(r.reason.contains("unknown field"), "{}", r.reason);
 }

@@ -384,8 +384,16 @@ fn bad_payloads(base: &[Value], earlier: &Value) -> Vec<(Vec<u8>, &'static str)>
             "modes[1].shape_nsd",
         ),
         (with(&|v| v["structure"] = "bridge-7".into()), "structure"),
-        // Earlier than the last accepted set.
-        (serde_json::to_vec(earlier).unwrap(), "time"),
+        // Earlier than the last accepted set (and not a re-delivery of it: another
+        // temperature, so other bytes).
+        (
+            {
+                let mut v = earlier.clone();
+                v["temperature_c"] = 99.5.into();
+                serde_json::to_vec(&v).unwrap()
+            },
+            "time",
+        ),
         (b"{not json".to_vec(), "payload"),
     ]
 }
@@ -503,4 +511,76 @@ fn extrapolated_final_step_stays_near_the_converged_minimum() {
     println!("extrapolated vs converged: largest {worst:.4} σ, mean {mean:.4} σ");
     assert!(worst < 0.15, "largest difference {worst} σ");
     assert!(mean < 0.01, "mean difference {mean} σ");
+}
+
+/// A re-delivered payload (the same bytes, as a sensor's advanced publisher re-sends its
+/// cache to a restarted daemon) is skipped and counted, not rejected, and leaves the state
+/// as it was; every output carries a stable id; and the checkpoint restores after every set.
+#[test]
+fn redeliveries_are_skipped_outputs_have_ids_and_checkpoints_restore() {
+    let d = tmp_dir("redelivery");
+    let rec = d.join("rec.mcap");
+    make_scenario("healthy", 12, 1.0, &rec);
+    let modal = topic("lab-frame", "modal");
+    let sets: Vec<RecordedMessage> = read_all(&rec)
+        .unwrap()
+        .into_iter()
+        .filter(|m| m.topic == modal)
+        .collect();
+    let s = settings(&NO_CROSSCHECK);
+    let model = boltwatch::io::model::load_model(&s.structures[0].model).unwrap();
+    let mut t = boltwatch::pipeline::Tracker::new(model.clone(), s.tracker.clone()).unwrap();
+    let received = |m: &RecordedMessage| boltwatch::io::mcap::from_ns(m.log_time);
+    let mut ids = std::collections::BTreeSet::new();
+    for m in &sets {
+        for a in t.handle(received(m), &m.data) {
+            if let boltwatch::pipeline::Action::Publish(o) = a {
+                let v: Value = serde_json::from_slice(&o.to_wire()).unwrap();
+                let id = v["id"].as_str().unwrap().to_string();
+                let want = format!(
+                    "lab-frame/{}/{}/",
+                    v["time"].as_str().unwrap(),
+                    match o.topic() {
+                        "stiffness" => "stiffness",
+                        "alerts" => "alert",
+                        other => panic!("unexpected output on {other}"),
+                    }
+                );
+                assert!(id.starts_with(&want), "{id} does not start with {want}");
+                assert!(ids.insert(id.clone()), "id {id} given twice");
+            }
+        }
+        // The checkpoint, through its JSON, restores to the same state.
+        let text = serde_json::to_string(&t.checkpoint()).unwrap();
+        let back = boltwatch::pipeline::Tracker::restore(
+            model.clone(),
+            s.tracker.clone(),
+            serde_json::from_str(&text).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(back.state(), t.state());
+    }
+    assert_eq!(t.state().accepted, sets.len() as u64);
+    let before = t.state().clone();
+    for m in &sets[3..6] {
+        assert!(
+            t.handle(received(m), &m.data).is_empty(),
+            "a re-delivery publishes nothing"
+        );
+    }
+    assert_eq!(t.state().duplicates, 3);
+    assert_eq!(t.state().rejected, 0);
+    let mut after = t.state().clone();
+    after.duplicates = 0;
+    assert_eq!(after, before, "a re-delivery changes nothing but the count");
+    // The same set with other bytes (not a re-delivery) is out of order: rejected by time.
+    let mut v: Value = serde_json::from_slice(&sets[4].data).unwrap();
+    v["source"] = "resent".into();
+    let out = t.handle(received(&sets[4]), &serde_json::to_vec(&v).unwrap());
+    let [boltwatch::pipeline::Action::Publish(o)] = &out[..] else {
+        panic!("expected one rejection, got {out:?}")
+    };
+    let r: Value = serde_json::from_slice(&o.to_wire()).unwrap();
+    assert_eq!(r["field"], "time");
+    assert!(r["id"].as_str().unwrap().contains("/rejected/"), "{r}");
 }
