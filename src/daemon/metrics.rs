@@ -119,6 +119,8 @@ pub struct Shared {
     pub depth: AtomicU64,
     /// Bytes of the payloads waiting in the queue.
     pub queued_bytes: AtomicU64,
+    /// Sets a publisher sent that never arrived and could not be recovered from its cache.
+    pub missed: AtomicU64,
     pub latency: Histogram,
     pub status: Mutex<Status>,
 }
@@ -141,6 +143,7 @@ impl Shared {
             dropped: AtomicU64::new(0),
             depth: AtomicU64::new(0),
             queued_bytes: AtomicU64::new(0),
+            missed: AtomicU64::new(0),
             latency: Histogram::default(),
             status: Mutex::new(Status::default()),
         })

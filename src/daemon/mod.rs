@@ -23,8 +23,11 @@ pub mod worker;
 use std::sync::mpsc;
 use std::time::Duration;
 
+use std::sync::atomic::Ordering;
+
 use anyhow::{Context, Result, anyhow, bail};
 use zenoh::Wait;
+use zenoh_ext::{AdvancedSubscriberBuilderExt, HistoryConfig, RecoveryConfig};
 
 use crate::contract::{Checkpoint, to_wire};
 use crate::io::checkpoint;
@@ -149,16 +152,42 @@ pub async fn run(settings: Settings) -> Result<()> {
                 })?,
         );
         let (cb_tx, cb_shared) = (tx.clone(), shared.clone());
-        subscribers.push(
-            session
-                .declare_subscriber(topic(&s.name, "modal"))
-                .callback(move |sample| enqueue(&cb_tx, &cb_shared, sample.payload()))
-                .await
-                .map_err(zerr(format!(
-                    "cannot subscribe to {}",
-                    topic(&s.name, "modal")
-                )))?,
-        );
+        // zenoh-ext's advanced subscriber: on start it asks every sensor's advanced
+        // publisher for its cache (history, and for publishers that appear later), and it
+        // detects sets missed in transport by their sequence numbers and fetches them again
+        // (recovery, triggered by the publishers' heartbeats). Sets published while the
+        // daemon was down are recovered this way; those it had handled are recognised by the
+        // tracker and skipped.
+        let sub = session
+            .declare_subscriber(topic(&s.name, "modal"))
+            .history(HistoryConfig::default().detect_late_publishers())
+            .recovery(RecoveryConfig::default().heartbeat())
+            .subscriber_detection()
+            .callback(move |sample| enqueue(&cb_tx, &cb_shared, sample.payload()))
+            .await
+            .map_err(zerr(format!(
+                "cannot subscribe to {}",
+                topic(&s.name, "modal")
+            )))?;
+        // Sets a publisher's cache no longer held: lost, so reported (on `rejected`).
+        let miss_shared = shared.clone();
+        sub.sample_miss_listener()
+            .callback(move |miss| {
+                tracing::warn!(
+                    structure = miss_shared.structure,
+                    "{} modal set(s) from publisher {}:{} were lost in transport and are no longer in its cache",
+                    miss.nb(),
+                    miss.source().zid(),
+                    miss.source().eid()
+                );
+                miss_shared
+                    .missed
+                    .fetch_add(u64::from(miss.nb()), Ordering::Relaxed);
+            })
+            .background()
+            .await
+            .map_err(zerr("cannot declare the sample-miss listener"))?;
+        subscribers.push(sub);
         let q_shared = shared.clone();
         queryables.push(
             session

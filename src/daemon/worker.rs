@@ -107,6 +107,7 @@ pub struct Worker {
     last_checkpoint: Instant,
     dirty: bool,
     dropped_reported: u64,
+    missed_reported: u64,
     /// The first logged set not yet handled (what a checkpoint records).
     handled_upto: Option<WalPosition>,
 }
@@ -136,6 +137,7 @@ impl Worker {
             last_checkpoint: Instant::now(),
             dirty: false,
             dropped_reported: 0,
+            missed_reported: 0,
             handled_upto: None,
         };
         w.update_status();
@@ -379,9 +381,20 @@ impl Worker {
     }
 
     /// Publishes one `rejected` message for the sets dropped at a full queue since the last
-    /// report.
+    /// report, and one for the sets lost in transport.
     fn report_drops(&mut self) -> Result<()> {
-        let shared = &self.out.shared;
+        let shared = self.out.shared.clone();
+        let missed = shared.missed.load(Ordering::Relaxed);
+        if missed != self.missed_reported {
+            let n = missed - self.missed_reported;
+            self.missed_reported = missed;
+            let reason = format!(
+                "{n} modal set(s) lost in transport, no longer in the publisher's cache ({missed} since start)"
+            );
+            let mut r = Rejected::dropped(&shared.structure, Utc::now(), n, missed, reason);
+            r.id = crate::contract::output_id(&shared.structure, r.time, "missed", missed);
+            emit(&mut self.out, &Output::Rejected(Box::new(r)))?;
+        }
         let dropped = shared.dropped.load(Ordering::Relaxed);
         if dropped == self.dropped_reported {
             return Ok(());

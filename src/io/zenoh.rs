@@ -5,6 +5,13 @@ use anyhow::{Result, anyhow};
 
 use crate::settings::{ZenohMode, ZenohSettings};
 
+/// The largest message the Zenoh transport takes in (instead of its 1 GiB default): a bound
+/// on the memory one message can take. The daemon itself rejects, with their size, payloads
+/// over `daemon.max_payload_bytes` (1 MiB); larger ones up to this bound reach it to be
+/// rejected and reported, larger still are dropped by Zenoh. The deploy configurations set
+/// the same value.
+pub const MAX_MESSAGE_BYTES: usize = 32 << 20;
+
 /// A Zenoh error as an `anyhow` error, with what was being done.
 pub fn zerr(what: impl std::fmt::Display) -> impl FnOnce(zenoh::Error) -> anyhow::Error {
     move |e| anyhow!("{what}: {e}")
@@ -44,6 +51,11 @@ pub fn session_config(z: &ZenohSettings) -> Result<zenoh::Config> {
         &mut cfg,
         "scouting/multicast/enabled",
         z.multicast_scouting.to_string(),
+    )?;
+    set(
+        &mut cfg,
+        "transport/link/rx/max_message_size",
+        MAX_MESSAGE_BYTES.to_string(),
     )?;
     Ok(cfg)
 }

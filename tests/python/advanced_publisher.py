@@ -45,6 +45,10 @@ conf.insert_json5("mode", '"peer"')
 conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
 conf.insert_json5("listen/endpoints", "[]")
 conf.insert_json5("scouting/multicast/enabled", "false")
+# Reconnect to a restarted daemon within 100 to 500 ms (Zenoh's default: 1 to 4 s).
+conf.insert_json5(
+    "connect/retry", "{period_init_ms: 100, period_max_ms: 500, period_increase_factor: 2}"
+)
 # Not needed with sample-miss detection (samples carry sequence numbers), but it gives the
 # cached samples timestamps, so a subscriber's HistoryConfig(max_age=...) can filter them.
 conf.insert_json5("timestamping/enabled", "true")

@@ -293,4 +293,5 @@ pub fn replayed_with(
 }
 
 mod deploy;
+mod field;
 mod tracking;
