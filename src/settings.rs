@@ -36,6 +36,9 @@ pub struct ZenohSettings {
     pub multicast_scouting: bool,
     /// A Zenoh JSON5 file that configures the session entirely ("": none).
     pub config_file: PathBuf,
+    /// How long a publication may block on a subscriber that does not read before Zenoh
+    /// closes its link (s).
+    pub block_timeout_s: f64,
 }
 
 /// Zenoh session mode.
@@ -203,6 +206,7 @@ impl Settings {
             ("daemon.checkpoint_every_s", self.daemon.checkpoint_every_s),
             ("daemon.log_rotate_hours", self.daemon.log_rotate_hours),
             ("daemon.max_future_s", self.daemon.max_future_s),
+            ("zenoh.block_timeout_s", self.zenoh.block_timeout_s),
         ] {
             if !(v.is_finite() && v > 0.0) {
                 bail!("configuration key {key}: {v} must be a finite number > 0");

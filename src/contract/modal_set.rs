@@ -175,7 +175,7 @@ fn uncertainty(v: &Value, field: &str) -> Result<f64, Rejection> {
         Err(reject(
             field,
             format!(
-                "{x} is below the floor {UNCERTAINTY_FLOOR} (no identification resolves a mode that finely; the weights of (9) would be meaningless)"
+                "{x:e} is below the floor {UNCERTAINTY_FLOOR:e} (no identification resolves a mode that finely; the weights of (9) would be meaningless)"
             ),
         ))
     }

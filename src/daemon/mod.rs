@@ -229,6 +229,34 @@ pub async fn run(settings: Settings) -> Result<()> {
 
     let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
         .context("cannot install the SIGTERM handler")?;
+    // systemd (Type=notify): ready once every structure is watched; with WatchdogSec, a
+    // ping every half period, but only while every tracking loop has gone round within
+    // that half period, so a hung tracker gets the process restarted.
+    if let Err(e) = sd_notify::notify(&[sd_notify::NotifyState::Ready]) {
+        tracing::warn!("cannot notify systemd of readiness: {e}");
+    }
+    let watchdog = sd_notify::watchdog_enabled().map(|period| {
+        let shared = shared_all.clone();
+        tokio::spawn(async move {
+            let half = period / 2;
+            let mut tick = tokio::time::interval(half);
+            loop {
+                tick.tick().await;
+                match shared.iter().find(|s| s.since_beat() > half) {
+                    None => {
+                        if let Err(e) = sd_notify::notify(&[sd_notify::NotifyState::Watchdog]) {
+                            tracing::warn!("cannot ping the systemd watchdog: {e}");
+                        }
+                    }
+                    Some(s) => tracing::error!(
+                        structure = s.structure,
+                        "tracking loop silent for {:.1} s: not pinging the watchdog",
+                        s.since_beat().as_secs_f64()
+                    ),
+                }
+            }
+        })
+    });
     let mut failure = None;
     tokio::select! {
         _ = sigterm.recv() => tracing::info!("SIGTERM: shutting down"),
@@ -240,6 +268,10 @@ pub async fn run(settings: Settings) -> Result<()> {
         }
     }
 
+    let _ = sd_notify::notify(&[sd_notify::NotifyState::Stopping]);
+    if let Some(w) = watchdog {
+        w.abort();
+    }
     // No new sets from here on; everything queued is still processed.
     for sub in subscribers {
         sub.undeclare()

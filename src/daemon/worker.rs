@@ -159,6 +159,7 @@ impl Worker {
             let n = inputs.len() as u64;
             for m in inputs {
                 self.handle(from_ns(m.log_time), &m.data)?;
+                self.out.shared.beat();
             }
             self.out.shared.with_status(|st| st.replayed += n);
             if n > 0 {

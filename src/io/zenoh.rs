@@ -57,5 +57,10 @@ pub fn session_config(z: &ZenohSettings) -> Result<zenoh::Config> {
         "transport/link/rx/max_message_size",
         MAX_MESSAGE_BYTES.to_string(),
     )?;
+    set(
+        &mut cfg,
+        "transport/link/tx/queue/congestion_control/block/wait_before_close",
+        ((z.block_timeout_s * 1e6).round() as u64).to_string(),
+    )?;
     Ok(cfg)
 }

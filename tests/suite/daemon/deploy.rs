@@ -203,10 +203,12 @@ fn access_control_lets_only_the_sensor_publish_modal_data() {
         .filter(|l| !l.contains("usrpwd"))
         .collect::<Vec<_>>()
         .join("\n");
+    let wrong_password = viewer.replace("v1ewer-pass", "not-the-password");
     for (name, text) in [
         ("sensor", &sensor),
         ("viewer", &viewer),
         ("anonymous", &anonymous),
+        ("wrong-password", &wrong_password),
     ] {
         std::fs::write(d.join(format!("{name}.json5")), text).unwrap();
     }
@@ -234,14 +236,17 @@ fn access_control_lets_only_the_sensor_publish_modal_data() {
     };
     let received = || status(&s).unwrap()["sets"]["received"].as_u64().unwrap();
 
-    // Without credentials: no connection, so no subscriber is ever seen.
-    let o = publish_as("anonymous");
-    assert!(!o.status.success());
-    assert!(
-        String::from_utf8_lossy(&o.stderr).contains("no subscriber"),
-        "{}",
-        String::from_utf8_lossy(&o.stderr)
-    );
+    // Without credentials, or with a wrong password: no connection, so no subscriber is
+    // ever seen.
+    for who in ["anonymous", "wrong-password"] {
+        let o = publish_as(who);
+        assert!(!o.status.success(), "{who} got through");
+        assert!(
+            String::from_utf8_lossy(&o.stderr).contains("no subscriber"),
+            "{who}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+    }
     // Valid credentials, but not the sensor's: the puts are denied at the daemon.
     let o = publish_as("viewer");
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
@@ -251,6 +256,36 @@ fn access_control_lets_only_the_sensor_publish_modal_data() {
         0,
         "modal data got in without the sensor's credentials"
     );
+    // A dashboard (a Zenoh client of the daemon, which routes for it) subscribes to the
+    // outputs; an authenticated user that is not the daemon (the viewer, or even the
+    // sensor) publishes a forged alert: it is denied at the daemon and never reaches the
+    // dashboard, while the daemon's own outputs do.
+    let as_client = |text: &str| text.replacen("mode: \"peer\"", "mode: \"client\"", 1);
+    assert_ne!(as_client(&viewer), viewer);
+    let dashboard = client_from(&as_client(&viewer));
+    let alerts = dashboard
+        .declare_subscriber(topic("lab-frame", "alerts"))
+        .with(zenoh::handlers::FifoChannel::new(1000))
+        .wait()
+        .unwrap();
+    let estimates = dashboard
+        .declare_subscriber(topic("lab-frame", "stiffness"))
+        .with(zenoh::handlers::FifoChannel::new(1000))
+        .wait()
+        .unwrap();
+    let forged = br#"{"schema":"boltwatch.alert.v1","structure":"lab-frame","kind":"loosening","level":"alarm","message":"forged"}"#;
+    for who in [&viewer, &sensor] {
+        let attacker = client_from(&as_client(who));
+        std::thread::sleep(Duration::from_millis(500));
+        for _ in 0..5 {
+            attacker
+                .put(topic("lab-frame", "alerts"), forged.to_vec())
+                .wait()
+                .unwrap();
+        }
+        std::thread::sleep(Duration::from_millis(500));
+        attacker.close().wait().unwrap();
+    }
     // The sensor pipeline.
     let o = publish_as("sensor");
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
@@ -258,6 +293,24 @@ fn access_control_lets_only_the_sensor_publish_modal_data() {
         v["sets"]["accepted"] == 10
     });
     assert_eq!(st["sets"]["received"], 10);
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let mut n_estimates = 0;
+    while n_estimates < 10 && Instant::now() < deadline {
+        if let Ok(Some(_)) = estimates.try_recv() {
+            n_estimates += 1;
+        } else {
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+    assert_eq!(
+        n_estimates, 10,
+        "the dashboard receives the daemon's estimates"
+    );
+    assert!(
+        alerts.try_recv().unwrap().is_none(),
+        "a forged alert reached the dashboard"
+    );
+    drop(dashboard);
     drop(s);
     assert!(daemon.terminate().success(), "{}", daemon.log());
 }

@@ -280,3 +280,47 @@ fn sigkill_storm_with_a_python_advanced_publisher_loses_nothing() {
         c
     });
 }
+
+/// systemd's protocol (Type=notify, WatchdogSec): the daemon sends READY=1 once it
+/// watches its structures and WATCHDOG=1 every half period while its tracking loops go
+/// round, and STOPPING=1 at SIGTERM.
+#[test]
+fn the_daemon_notifies_systemd_and_feeds_its_watchdog() {
+    use std::os::unix::net::UnixDatagram;
+    let d = tmp_dir("daemon-sdnotify");
+    let path = d.join("notify.sock");
+    let sock = UnixDatagram::bind(&path).unwrap();
+    sock.set_read_timeout(Some(Duration::from_secs(30)))
+        .unwrap();
+    let socket = path.display().to_string();
+    let mut daemon = Daemon::start_env(
+        &d,
+        &[
+            ("NOTIFY_SOCKET", socket.as_str()),
+            ("WATCHDOG_USEC", "400000"),
+        ],
+    );
+    let mut got = Vec::new();
+    let mut buf = [0u8; 256];
+    let start = Instant::now();
+    while got
+        .iter()
+        .filter(|m: &&String| m.contains("WATCHDOG=1"))
+        .count()
+        < 3
+    {
+        let n = sock.recv(&mut buf).expect("a notification within 30 s");
+        got.push(String::from_utf8_lossy(&buf[..n]).into_owned());
+    }
+    assert!(got[0].contains("READY=1"), "{got:?}");
+    // Three pings, 0.2 s apart, within about a second of readiness.
+    assert!(start.elapsed() < Duration::from_secs(20), "{got:?}");
+    assert!(daemon.terminate().success(), "{}", daemon.log());
+    let mut rest = Vec::new();
+    sock.set_read_timeout(Some(Duration::from_millis(500)))
+        .unwrap();
+    while let Ok(n) = sock.recv(&mut buf) {
+        rest.push(String::from_utf8_lossy(&buf[..n]).into_owned());
+    }
+    assert!(rest.iter().any(|m| m.contains("STOPPING=1")), "{rest:?}");
+}

@@ -40,6 +40,7 @@ pub struct Daemon {
     pub endpoint: String,
     pub metrics: String,
     config: PathBuf,
+    env: Vec<(String, String)>,
 }
 
 impl Daemon {
@@ -71,16 +72,41 @@ impl Daemon {
             ),
         )
         .unwrap();
-        Self::spawn(dir, config, endpoint, metrics)
+        Self::spawn(dir, config, endpoint, metrics, Vec::new())
     }
 
-    fn spawn(dir: &Path, config: PathBuf, endpoint: String, metrics: String) -> Self {
+    /// [`Daemon::start`] with extra environment variables.
+    pub fn start_env(dir: &Path, env: &[(&str, &str)]) -> Self {
+        let mut d = Self::start(dir, "", "");
+        let _ = d.child.kill();
+        let _ = d.child.wait();
+        let env = env
+            .iter()
+            .map(|(k, v)| (k.to_string(), v.to_string()))
+            .collect();
+        Self::spawn(
+            dir,
+            d.config.clone(),
+            d.endpoint.clone(),
+            d.metrics.clone(),
+            env,
+        )
+    }
+
+    fn spawn(
+        dir: &Path,
+        config: PathBuf,
+        endpoint: String,
+        metrics: String,
+        env: Vec<(String, String)>,
+    ) -> Self {
         let log = std::fs::OpenOptions::new()
             .create(true)
             .append(true)
             .open(dir.join("daemon.log"))
             .unwrap();
         let child = bin()
+            .envs(env.iter().map(|(k, v)| (k, v)))
             .arg("run")
             .arg("--config")
             .arg(&config)
@@ -94,6 +120,7 @@ impl Daemon {
             endpoint,
             metrics,
             config,
+            env,
         }
     }
 
@@ -104,6 +131,7 @@ impl Daemon {
             self.config.clone(),
             self.endpoint.clone(),
             self.metrics.clone(),
+            self.env.clone(),
         )
     }
 
