@@ -25,6 +25,11 @@ pub const FREQUENCY_ORDER_TOLERANCE: f64 = 1e-6;
 /// 1e-300 they overflow.
 pub const UNCERTAINTY_FLOOR: f64 = 1e-6;
 
+/// The most modes a set may carry. Identifications deliver tens; each mode costs the
+/// update an eigenpair and its sensitivities, so a set of thousands (a fuzzed one carried
+/// 1,534 copies of one mode) would hold up tracking for seconds.
+pub const MAX_MODES: usize = 100;
+
 /// The longest reason a rejection carries, in bytes: a reason quotes the offending data,
 /// which an attacker chooses.
 pub const REASON_LIMIT: usize = 512;
@@ -378,6 +383,15 @@ pub fn parse_modal_set(payload: &[u8], ctx: &ValidationContext) -> Result<ModalS
     if items.is_empty() {
         return Err(reject("modes", "must not be empty"));
     }
+    if items.len() > MAX_MODES {
+        return Err(reject(
+            "modes",
+            format!(
+                "{} modes, more than the {MAX_MODES} a set may carry",
+                items.len()
+            ),
+        ));
+    }
     let modes = items
         .iter()
         .enumerate()
@@ -524,7 +538,8 @@ fn check_normalizable(shape: &[Option<f64>], path: &str) -> Result<(), Rejection
     Ok(())
 }
 
-/// Rule: frequencies increase, equality within [`FREQUENCY_ORDER_TOLERANCE`] accepted.
+/// Rule: frequencies increase, equality within [`FREQUENCY_ORDER_TOLERANCE`] accepted
+/// (close modes), but not a mode repeated: the same frequency and the same shape.
 fn check_frequency_order(modes: &[MeasuredMode]) -> Result<(), Rejection> {
     for (i, pair) in modes.windows(2).enumerate() {
         let (prev, cur) = (pair[0].frequency_hz, pair[1].frequency_hz);
@@ -532,6 +547,12 @@ fn check_frequency_order(modes: &[MeasuredMode]) -> Result<(), Rejection> {
             return Err(reject(
                 format!("modes[{}].frequency_hz", i + 1),
                 format!("frequencies must increase: {cur} after modes[{i}].frequency_hz = {prev}"),
+            ));
+        }
+        if cur <= prev * (1.0 + FREQUENCY_ORDER_TOLERANCE) && pair[0].shape == pair[1].shape {
+            return Err(reject(
+                format!("modes[{}]", i + 1),
+                format!("repeats modes[{i}] (the same frequency {cur} Hz and the same shape)"),
             ));
         }
     }

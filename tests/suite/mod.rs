@@ -7,6 +7,7 @@ mod contract;
 mod daemon;
 mod diagnosis;
 mod fe;
+mod fuzz;
 mod golden;
 mod modal_set;
 mod mode_matching;

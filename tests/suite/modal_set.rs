@@ -674,3 +674,16 @@ fn rejection_reasons_and_fields_are_capped() {
     );
     assert!(r.reason.contains("unknown field"), "{}", r.reason);
 }
+
+/// A set of more than `MAX_MODES` modes, or one repeating a mode (same frequency, same
+/// shape), is rejected: a fuzzed set of 1,534 copies of one mode held the tracker 19 s.
+#[test]
+fn rejects_too_many_modes_and_repeated_modes() {
+    let v = with(|v| {
+        let m = v["modes"][0].clone();
+        v["modes"] = json!(vec![m; MAX_MODES + 1]);
+    });
+    assert_rejected(parse(&v), "modes", &["more than the 100"]);
+    let v = with(|v| v["modes"][1] = v["modes"][0].clone());
+    assert_rejected(parse(&v), "modes[1]", &["repeats modes[0]"]);
+}
