@@ -1,6 +1,7 @@
 //! `boltwatch run` (issue 5, DESIGN §3.4 and §7): the live daemon.
 //!
-//! One Zenoh session. Per watched structure: a subscriber on `boltwatch/<s>/modal` that
+//! One Zenoh session. Per watched structure: zenoh-ext's advanced subscriber on
+//! `boltwatch/<s>/modal` (history and recovery from the sensors' publisher caches) that
 //! puts each payload into a bounded queue (a set that does not fit is dropped and counted,
 //! and the count is published on `rejected`, logged and shown in status and metrics); a
 //! tracking thread ([`worker`]) that runs the sans-I/O [`crate::pipeline::Tracker`] on the
@@ -10,7 +11,10 @@
 //!
 //! State lives in `[daemon] state_dir` (default `$XDG_STATE_HOME/boltwatch`): `<s>.checkpoint.json` (the tracker, written
 //! atomically every `tracker.checkpoint_every_sets` sets, every `checkpoint_every_s` seconds
-//! while sets arrive, and at shutdown) and `log/`. A restart resumes from the checkpoint.
+//! while sets arrive, and at shutdown) and `log/`, which is also the write-ahead log. A
+//! restart resumes from the checkpoint and tracks again the sets logged after it
+//! ([`worker::Worker::resume`]). systemd: readiness and a watchdog fed while every tracking
+//! loop goes round (`sd_notify`).
 //!
 //! Shutdown (SIGINT, SIGTERM): the subscribers are undeclared first, every set already
 //! queued is processed, a running cross-check is awaited, the state is checkpointed and the

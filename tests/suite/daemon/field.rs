@@ -324,3 +324,130 @@ fn the_daemon_notifies_systemd_and_feeds_its_watchdog() {
     }
     assert!(rest.iter().any(|m| m.contains("STOPPING=1")), "{rest:?}");
 }
+
+/// A subscriber that stops reading (a Python client, SIGSTOPped) holds up the daemon's
+/// publications at most `zenoh.block_timeout_s` (here 1 s): then Zenoh closes its link and
+/// tracking goes on; the MCAP log still gets every output.
+#[test]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow tier: cargo test --features slow-tests"
+)]
+fn a_subscriber_that_stops_reading_cannot_stall_tracking() {
+    let d = tmp_dir("daemon-stalled-subscriber");
+    let port = free_port();
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let zenoh = format!("listen = [\"{endpoint}\"]\nblock_timeout_s = 1.0");
+    let mut daemon = Daemon::start_with(&d, &zenoh, endpoint.clone(), "", "");
+    let s = client(&daemon.endpoint);
+    wait_status(&s, Duration::from_secs(30), "the daemon to answer", |_| {
+        true
+    });
+    let python = python_venv("py-zenoh-venv", "import zenoh", &["eclipse-zenoh==1.10.2"]);
+    let script = format!(
+        r#"
+import json, sys, time, zenoh
+c = zenoh.Config()
+c.insert_json5("mode", '"peer"')
+c.insert_json5("connect/endpoints", json.dumps(["{endpoint}"]))
+c.insert_json5("listen/endpoints", "[]")
+c.insert_json5("scouting/multicast/enabled", "false")
+s = zenoh.open(c)
+sub = s.declare_subscriber("boltwatch/lab-frame/rejected", lambda sample: None)
+print("ready", flush=True)
+time.sleep(600)
+"#
+    );
+    let mut slow = Command::new(&python)
+        .args(["-c", &script])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufRead::read_line(
+        &mut std::io::BufReader::new(slow.stdout.as_mut().unwrap()),
+        &mut line,
+    )
+    .unwrap();
+    assert_eq!(line.trim(), "ready");
+    std::thread::sleep(Duration::from_millis(500));
+    unsafe {
+        libc::kill(slow.id() as i32, libc::SIGSTOP);
+    }
+    // 20,000 rejected payloads of 8 KiB, in chunks of 500 (the queue holds 1,024): each is
+    // answered on `rejected` with a 4 KiB echo, 80 MiB in all, far more than the stopped
+    // subscriber's socket buffers hold. The longest wait for a chunk to be handled is the
+    // stall.
+    let n = 20_000u64;
+    let publisher = s
+        .declare_publisher(topic("lab-frame", "modal"))
+        .congestion_control(zenoh::qos::CongestionControl::Block)
+        .wait()
+        .unwrap();
+    let t0 = Instant::now();
+    let mut longest = Duration::ZERO;
+    let mut st = Value::Null;
+    for chunk in 0..n / 500 {
+        let c0 = Instant::now();
+        for k in chunk * 500..(chunk + 1) * 500 {
+            let payload = format!(
+                "{{\"schema\":\"not-a-modal-set\",\"k\":{k},\"pad\":\"{}\"}}",
+                "p".repeat(8192)
+            );
+            publisher.put(payload).wait().unwrap();
+        }
+        let want = (chunk + 1) * 500;
+        st = wait_status(&s, Duration::from_secs(60), "a chunk handled", |v| {
+            v["sets"]["rejected"].as_u64().unwrap_or(0) + v["sets"]["dropped"].as_u64().unwrap_or(0)
+                >= want
+        });
+        longest = longest.max(c0.elapsed());
+    }
+    let took = t0.elapsed();
+    unsafe {
+        libc::kill(slow.id() as i32, libc::SIGKILL);
+    }
+    let _ = slow.wait();
+    drop(s);
+    assert!(daemon.terminate().success(), "{}", daemon.log());
+    let (mut logged, mut reported_dropped) = (0, 0);
+    for f in daemon.log_files() {
+        if f.extension().is_some_and(|e| e == "mcap") {
+            for m in read_all(&f).unwrap() {
+                if m.topic == topic("lab-frame", "rejected") {
+                    let v: Value = serde_json::from_slice(&m.data).unwrap();
+                    match v["dropped"].as_u64() {
+                        Some(k) => reported_dropped += k,
+                        None => logged += 1,
+                    }
+                }
+            }
+        }
+    }
+    eprintln!(
+        "stalled subscriber: {n} rejections in {:.1} s, longest chunk of 500 {:.2} s; dropped {}, publish errors {}",
+        took.as_secs_f64(),
+        longest.as_secs_f64(),
+        st["sets"]["dropped"],
+        st["publish_errors"]
+    );
+    assert_eq!(
+        logged,
+        st["sets"]["rejected"].as_u64().unwrap(),
+        "the log has every output"
+    );
+    assert_eq!(
+        reported_dropped,
+        st["sets"]["dropped"].as_u64().unwrap(),
+        "every drop reported"
+    );
+    assert_eq!(
+        st["sets"]["dropped"], 0,
+        "nothing dropped: the stall is bounded"
+    );
+    assert!(
+        longest < Duration::from_secs(4),
+        "tracking stalled {longest:?} on a subscriber that stopped reading (bound: 1 s)"
+    );
+}
