@@ -42,8 +42,11 @@ fn hostile_inputs_are_rejected_by_field_and_the_daemon_goes_on() {
         true
     });
     let outputs = Outputs::subscribe(&s);
+    // Blocking, as a sensor publishes: with Zenoh's default (drop), the client itself may
+    // drop the 16 MiB message's fragments, and the sets after it, on a loaded machine.
     let publisher = s
         .declare_publisher(topic("lab-frame", "modal"))
+        .congestion_control(zenoh::qos::CongestionControl::Block)
         .wait()
         .unwrap();
     let put = |bytes: Vec<u8>| publisher.put(bytes).wait().unwrap();
