@@ -146,10 +146,7 @@ pub async fn run(settings: Settings) -> Result<()> {
                     .unwrap_or_else(|p| {
                         Err(anyhow!(
                             "the tracking thread panicked: {}",
-                            p.downcast_ref::<&str>()
-                                .map(|s| s.to_string())
-                                .or_else(|| p.downcast_ref::<String>().cloned())
-                                .unwrap_or_default()
+                            worker::panic_message(&*p)
                         ))
                     });
                     let _ = done.send((name, r));

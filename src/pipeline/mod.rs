@@ -305,7 +305,13 @@ impl Tracker {
         };
         match parse_modal_set(payload, &ctx) {
             Ok(set) => self.handle_set(set, received, payload),
-            Err(rej) => self.reject(received, &rej, payload),
+            Err(rej) => vec![Action::Publish(self.refuse(
+                received,
+                &rej,
+                payload,
+                payload.len(),
+                digest,
+            ))],
         }
     }
 

@@ -274,10 +274,7 @@ fn fuzz(n: u64, seed: u64) -> Report {
             },
             100..700 => {
                 mutate(&mut v, &mut rng, received);
-                serde_json::to_vec(&v)
-                    .unwrap()
-                    .into_iter()
-                    .collect::<Vec<u8>>()
+                serde_json::to_vec(&v).unwrap()
             }
             _ => {
                 let mut b = serde_json::to_vec(&v).unwrap();

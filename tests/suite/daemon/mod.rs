@@ -62,6 +62,28 @@ impl Daemon {
         daemon_keys: &str,
         extra: &str,
     ) -> Self {
+        Self::start_full(dir, zenoh, endpoint, daemon_keys, extra, Vec::new())
+    }
+
+    /// [`Daemon::start`] with extra environment variables.
+    pub fn start_env(dir: &Path, env: &[(&str, &str)]) -> Self {
+        let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+        let zenoh = format!("listen = [\"{endpoint}\"]");
+        let env = env
+            .iter()
+            .map(|(k, v)| (k.to_string(), v.to_string()))
+            .collect();
+        Self::start_full(dir, &zenoh, endpoint, "", "", env)
+    }
+
+    fn start_full(
+        dir: &Path,
+        zenoh: &str,
+        endpoint: String,
+        daemon_keys: &str,
+        extra: &str,
+        env: Vec<(String, String)>,
+    ) -> Self {
         let metrics = format!("127.0.0.1:{}", free_port());
         let config = dir.join("boltwatch.toml");
         std::fs::write(
@@ -72,25 +94,7 @@ impl Daemon {
             ),
         )
         .unwrap();
-        Self::spawn(dir, config, endpoint, metrics, Vec::new())
-    }
-
-    /// [`Daemon::start`] with extra environment variables.
-    pub fn start_env(dir: &Path, env: &[(&str, &str)]) -> Self {
-        let mut d = Self::start(dir, "", "");
-        let _ = d.child.kill();
-        let _ = d.child.wait();
-        let env = env
-            .iter()
-            .map(|(k, v)| (k.to_string(), v.to_string()))
-            .collect();
-        Self::spawn(
-            dir,
-            d.config.clone(),
-            d.endpoint.clone(),
-            d.metrics.clone(),
-            env,
-        )
+        Self::spawn(dir, config, endpoint, metrics, env)
     }
 
     fn spawn(
