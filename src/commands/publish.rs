@@ -46,13 +46,6 @@ pub struct PublishArgs {
 /// last sets.
 const HEARTBEAT: Duration = Duration::from_millis(500);
 
-/// Pause after a new peer connects, before the next set. zenoh-ext 1.10's subscriber that
-/// detects a publisher late (a restarted daemon) asks for its cache, but a live set that
-/// overtakes that reply makes it drop the older, cached ones without a miss report; the
-/// pause lets the reply go first (a pure Python reproduction lost history in 4 of 11
-/// reconnections without it and in none of 21 with it).
-const NEW_PEER_PAUSE: Duration = Duration::from_millis(500);
-
 pub fn run(args: &PublishArgs) -> Result<()> {
     if !(args.rate.is_finite() && args.rate >= 0.0) {
         bail!("--rate {}: must be a finite number >= 0", args.rate);
@@ -145,17 +138,9 @@ pub fn run(args: &PublishArgs) -> Result<()> {
             publishers.insert(t.clone(), p);
         }
         let start = Instant::now();
-        let mut peers = peer_set(&session).await;
-        let mut shift = Duration::ZERO;
         for (k, m) in sets.iter().enumerate() {
-            let now = peer_set(&session).await;
-            if now.iter().any(|p| !peers.contains(p)) {
-                tokio::time::sleep(NEW_PEER_PAUSE).await;
-                shift += NEW_PEER_PAUSE;
-            }
-            peers = now;
             if args.rate > 0.0 {
-                let due = start + shift + Duration::from_secs_f64(k as f64 / args.rate);
+                let due = start + Duration::from_secs_f64(k as f64 / args.rate);
                 tokio::time::sleep_until(due.into()).await;
             }
             publishers[&m.topic]
@@ -196,11 +181,6 @@ pub fn run(args: &PublishArgs) -> Result<()> {
         );
         Ok(())
     })
-}
-
-/// The peers the session is connected to.
-async fn peer_set(session: &zenoh::Session) -> Vec<zenoh::session::ZenohId> {
-    session.info().peers_zid().await.collect()
 }
 
 /// The `time` of a modal-set payload, to the millisecond (as status replies give it).

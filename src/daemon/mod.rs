@@ -20,6 +20,7 @@
 //! queued is processed, a running cross-check is awaited, the state is checkpointed and the
 //! log file is finished, so nothing received is lost and a restart duplicates nothing.
 
+pub mod contact;
 pub mod log;
 pub mod metrics;
 pub mod worker;
@@ -41,7 +42,7 @@ use crate::io::zenoh::{session_config, zerr};
 use crate::pipeline::{Tracker, TrackerState};
 use crate::settings::Settings;
 use metrics::Shared;
-use worker::{Input, LiveSink, Worker, enqueue};
+use worker::{Input, LiveSink, Worker};
 
 /// Runs the daemon until SIGINT or SIGTERM (or a tracking thread fails).
 pub async fn run(settings: Settings) -> Result<()> {
@@ -152,19 +153,26 @@ pub async fn run(settings: Settings) -> Result<()> {
                     let _ = done.send((name, r));
                 })?,
         );
-        let (cb_tx, cb_shared) = (tx.clone(), shared.clone());
+        let gate = contact::Gate::new(
+            session.clone(),
+            zenoh::key_expr::KeyExpr::try_from(topic(&s.name, "modal"))
+                .map_err(zerr(format!("structure {}: modal key", s.name)))?,
+            tx.clone(),
+            shared.clone(),
+        );
         // zenoh-ext's advanced subscriber: on start it asks every sensor's advanced
         // publisher for its cache (history, and for publishers that appear later), and it
         // detects sets missed in transport by their sequence numbers and fetches them again
         // (recovery, triggered by the publishers' heartbeats). Sets published while the
         // daemon was down are recovered this way; those it had handled are recognised by the
-        // tracker and skipped.
+        // tracker and skipped. zenoh-ext can lose the history of a publisher it meets late
+        // (see [`contact`]): the gate fetches it again.
         let sub = session
             .declare_subscriber(topic(&s.name, "modal"))
             .history(HistoryConfig::default().detect_late_publishers())
             .recovery(RecoveryConfig::default().heartbeat())
             .subscriber_detection()
-            .callback(move |sample| enqueue(&cb_tx, &cb_shared, sample.payload()))
+            .callback(move |sample| gate.offer(&sample))
             .await
             .map_err(zerr(format!(
                 "cannot subscribe to {}",

@@ -452,13 +452,27 @@ pub fn panic_message(panic: &(dyn std::any::Any + Send)) -> String {
         .unwrap_or_else(|| "a panic without a message".into())
 }
 
+/// What [`enqueue`] does with a set that does not fit the queue.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum WhenFull {
+    /// Drop it and count it (live sets: the Zenoh callback must not block).
+    Drop,
+    /// Wait for room (sets fetched from a publisher's cache, on their own thread), for at
+    /// most [`QUEUE_WAIT`], then drop and count it.
+    Wait,
+}
+
+/// How long [`WhenFull::Wait`] waits for room in the queue.
+pub const QUEUE_WAIT: Duration = Duration::from_secs(60);
+
 /// The subscriber side of the queue: a payload over the size limit is passed on as its
 /// start and digest only; a set that does not fit the queue (by count or by bytes) is
-/// dropped and counted.
-pub fn enqueue(tx: &SyncSender<Input>, shared: &Shared, payload: &ZBytes) {
+/// dropped and counted, or waited for (`when_full`).
+pub fn enqueue(tx: &SyncSender<Input>, shared: &Shared, payload: &ZBytes, when_full: WhenFull) {
     shared.received.fetch_add(1, Ordering::Relaxed);
     let received = Utc::now();
     let size = payload.len();
+    let deadline = Instant::now() + QUEUE_WAIT;
     let input = if size > shared.max_payload {
         let mut head = Vec::with_capacity(REJECTED_PAYLOAD_LIMIT);
         for slice in payload.slices() {
@@ -472,10 +486,12 @@ pub fn enqueue(tx: &SyncSender<Input>, shared: &Shared, payload: &ZBytes) {
             digest: digest_parts(payload.slices()),
         }
     } else {
-        let queued = shared.queued_bytes.load(Ordering::Relaxed);
-        if queued + size as u64 > shared.queue_bytes {
-            shared.dropped.fetch_add(1, Ordering::Relaxed);
-            return;
+        while shared.queued_bytes.load(Ordering::Relaxed) + size as u64 > shared.queue_bytes {
+            if when_full == WhenFull::Drop || Instant::now() >= deadline {
+                shared.dropped.fetch_add(1, Ordering::Relaxed);
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(5));
         }
         shared
             .queued_bytes
@@ -490,12 +506,25 @@ pub fn enqueue(tx: &SyncSender<Input>, shared: &Shared, payload: &ZBytes) {
         Input::Set { payload, .. } => payload.len() as u64,
         _ => 0,
     };
-    match tx.try_send(input) {
-        Ok(()) => {}
-        Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) => {
-            shared.depth.fetch_sub(1, Ordering::Relaxed);
-            shared.queued_bytes.fetch_sub(bytes, Ordering::Relaxed);
-            shared.dropped.fetch_add(1, Ordering::Relaxed);
+    let sent = match when_full {
+        WhenFull::Drop => tx.try_send(input).is_ok(),
+        WhenFull::Wait => {
+            let mut input = input;
+            loop {
+                match tx.try_send(input) {
+                    Ok(()) => break true,
+                    Err(TrySendError::Full(back)) if Instant::now() < deadline => {
+                        input = back;
+                        std::thread::sleep(Duration::from_millis(5));
+                    }
+                    Err(_) => break false,
+                }
+            }
         }
+    };
+    if !sent {
+        shared.depth.fetch_sub(1, Ordering::Relaxed);
+        shared.queued_bytes.fetch_sub(bytes, Ordering::Relaxed);
+        shared.dropped.fetch_add(1, Ordering::Relaxed);
     }
 }

@@ -7,8 +7,8 @@ boltwatch/lab-frame/modal with a cache holding every set of SETS.jsonl, sample-m
 detection (heartbeat every 500 ms) and publisher detection, so a daemon restarted with an
 AdvancedSubscriber (history, late-publisher detection, recovery) gets the sets published
 while it was down. Waits (up to STATUS_TIMEOUT_S) for a subscriber, publishes every set
-(one JSON payload per line) at RATE sets/s (0 = as fast as possible), pausing 0.5 s after
-each (re)connection to a peer so that a restarted daemon gets the cached sets first, then
+(one JSON payload per line) at RATE sets/s (0 = as fast as possible), as a sensor does:
+with no pause when a restarted daemon reconnects (the daemon fetches what it missed), then
 keeps the session and its cache alive, querying boltwatch/lab-frame/status every 200 ms,
 until the daemon's last_set_time reaches the last set's time. Prints
 {"published": N, "seconds": S, "confirmed": true/false}; exits with code 3 if the daemon
@@ -25,7 +25,6 @@ import zenoh.ext
 
 KEY = "boltwatch/lab-frame/modal"
 STATUS = "boltwatch/lab-frame/status"
-SETTLE_S = 0.5  # pause before publishing to a newly connected peer
 
 endpoint, sets_path = sys.argv[1], sys.argv[2]
 rate, status_timeout = float(sys.argv[3]), float(sys.argv[4])
@@ -83,20 +82,13 @@ with zenoh.open(conf) as session:
             sys.exit(f"no subscriber on {KEY} after {status_timeout} s")
         time.sleep(0.05)
     probe.undeclare()
-    time.sleep(SETTLE_S)
 
     start = time.monotonic()
-    peers = set(str(z) for z in session.info.peers_zid())
     for k, payload in enumerate(sets):
         if rate > 0:
             delay = start + k / rate - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
-        # A restarted daemon queries this publisher's cache when it detects it; a live sample
-        # reaching it before the first reply makes its AdvancedSubscriber drop the older ones.
-        known, peers = peers, set(str(z) for z in session.info.peers_zid())
-        if peers - known:
-            time.sleep(SETTLE_S)
         pub.put(payload.encode("utf-8"))
     seconds = time.monotonic() - start
 
