@@ -49,6 +49,11 @@ pub struct Nelson {
     k_values: Vec<f64>,
     k_theta: Vec<f64>,
     m_phi: Vec<f64>,
+    /// Per parameter, the columns of `K_l` that hold entries and the rows they reach
+    /// (ascending): a connection's `K_l` touches a few DOFs, so `K_l φ` and `φᵀ K_l φ` are
+    /// formed there only.
+    k_cols: Vec<Vec<usize>>,
+    k_rows: Vec<Vec<usize>>,
     /// Right-hand sides and solutions, in the reordered numbering.
     rhs: Mat<f64>,
     f: Mat<f64>,
@@ -73,6 +78,22 @@ impl Nelson {
             cholesky.factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Default::default()),
             cholesky.solve_in_place_scratch::<f64>(p, Par::Seq),
         ]));
+        let (k_cols, k_rows) = (0..p)
+            .map(|l| {
+                let kl = model.k_param(l);
+                let sym = kl.symbolic();
+                let cols: Vec<usize> = (0..kl.ncols())
+                    .filter(|&j| !sym.row_idx_of_col_raw(j).is_empty())
+                    .collect();
+                let mut rows: Vec<usize> = cols
+                    .iter()
+                    .flat_map(|&j| sym.row_idx_of_col_raw(j).iter().copied())
+                    .collect();
+                rows.sort_unstable();
+                rows.dedup();
+                (cols, rows)
+            })
+            .unzip();
         Ok(Self {
             symbolic,
             l_values: vec![0.0; cholesky.len_val()],
@@ -81,6 +102,8 @@ impl Nelson {
             k_values: vec![0.0; order.len()],
             k_theta: Vec::new(),
             m_phi: vec![0.0; n],
+            k_cols,
+            k_rows,
             work: [vec![0.0; n], vec![0.0; n], vec![0.0; n]],
             rhs: Mat::zeros(n, p),
             f: Mat::zeros(n, p),
@@ -133,21 +156,39 @@ impl Nelson {
         }
         let a = SparseColMatRef::new(lower, &self.values);
 
-        // Right-hand sides f_l = −(K_l − ∂λ_l M) φ with f_l[k] = 0.
+        // Right-hand sides f_l = −(K_l − ∂λ_l M) φ with f_l[k] = 0, in the reordered
+        // numbering: ∂λ_l M φ, less K_l φ on the rows K_l reaches. The sums run in the
+        // order of a dense product (terms that are exactly zero left out), so the values
+        // are those of one.
         self.m_phi.iter_mut().for_each(|v| *v = 0.0);
         spmv_add(model.mass(), phi, 1.0, &mut self.m_phi);
         let [f, r, s] = &mut self.work;
+        f.iter_mut().for_each(|v| *v = 0.0);
+        // `s`: M φ in the reordered numbering.
+        order.permute(&self.m_phi, s);
         for (l, dl) in dlambda.iter_mut().enumerate().take(p) {
-            // K_l φ once: ∂λ_l = φᵀ K_l φ and f_l = ∂λ_l M φ − K_l φ.
+            // K_l φ once (into `f`, zero outside the rows K_l reaches): ∂λ_l = φᵀ K_l φ.
             let kl = model.k_param(l);
-            f.iter_mut().for_each(|v| *v = 0.0);
-            spmv_add(kl, phi, 1.0, f);
-            *dl = f.iter().zip(phi).map(|(a, b)| a * b).sum();
-            f.iter_mut()
-                .zip(&self.m_phi)
-                .for_each(|(fi, mp)| *fi = *dl * mp - *fi);
-            f[k] = 0.0;
-            order.permute(f, col_slice_mut(self.f.as_mut(), l));
+            let sym = kl.symbolic();
+            for &j in &self.k_cols[l] {
+                let xj = phi[j];
+                if xj == 0.0 {
+                    continue;
+                }
+                for (&i, &v) in sym.row_idx_of_col_raw(j).iter().zip(kl.val_of_col(j)) {
+                    f[i] += v * xj;
+                }
+            }
+            *dl = self.k_rows[l].iter().map(|&i| f[i] * phi[i]).sum();
+            let col = col_slice_mut(self.f.as_mut(), l);
+            for (c, mp) in col.iter_mut().zip(s.iter()) {
+                *c = *dl * mp;
+            }
+            for &i in &self.k_rows[l] {
+                col[order.inv[i]] = *dl * self.m_phi[i] - f[i];
+                f[i] = 0.0;
+            }
+            col[kp] = 0.0;
         }
         self.rhs.copy_from(&self.f);
         let ldlt_ok = match order.symbolic.factorize_numeric_ldlt(
@@ -263,9 +304,16 @@ fn backward_error(
 ) -> f64 {
     let n = a.nrows();
     let sym = a.symbolic();
-    for (j, vj) in vsum.iter_mut().enumerate() {
-        *vj = v.row(j).iter().sum();
-    }
+    // Row sums, column after column (the columns are contiguous).
+    let row_sums = |m: faer::MatRef<'_, f64>, out: &mut [f64]| {
+        out.iter_mut().for_each(|x| *x = 0.0);
+        for l in 0..m.ncols() {
+            for (o, x) in out.iter_mut().zip(col_slice(m, l)) {
+                *o += x;
+            }
+        }
+    };
+    row_sums(v, vsum);
     r.iter_mut().for_each(|x| *x = 0.0);
     s.iter_mut().for_each(|x| *x = 0.0);
     for j in 0..n {
@@ -279,10 +327,12 @@ fn backward_error(
             }
         }
     }
+    // The residual's sums are final: `vsum` now takes those of `f`.
+    row_sums(f, vsum);
     let mut num: f64 = 0.0;
     let mut den: f64 = 0.0;
     for i in 0..n {
-        let fi: f64 = f.row(i).iter().sum();
+        let fi = vsum[i];
         num = num.max((r[i] - fi).abs());
         den = den.max(s[i]).max(fi.abs());
     }

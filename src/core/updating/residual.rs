@@ -41,6 +41,32 @@ impl Evaluation {
     }
 }
 
+/// Workspaces sharing a small model's Nelson solves. On the lab frame (142 DOF, 9 paired
+/// modes, ~50 µs each) two cut that part of a warm update from ~460 to ~260 µs; more
+/// would spend in hand-offs what they save.
+pub const SMALL_MODEL_THREADS: usize = 2;
+
+/// The threads that take the Nelson shares beyond the caller's: one per core but one (at
+/// most three), kept for the process (a thread spawned per Jacobian cost as much as it
+/// saved on the lab frame), and apart from rayon's global pool, which cross-checks keep
+/// busy. `None` on one core.
+fn helpers() -> Option<&'static rayon::ThreadPool> {
+    static POOL: std::sync::OnceLock<Option<rayon::ThreadPool>> = std::sync::OnceLock::new();
+    POOL.get_or_init(|| {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        if cores < 2 {
+            return None;
+        }
+        rayon::ThreadPoolBuilder::new()
+            .num_threads((cores - 1).min(3))
+            .thread_name(|i| format!("nelson-{i}"))
+            .build()
+            .map_err(|e| tracing::warn!("no helper threads for Nelson's method: {e}"))
+            .ok()
+    })
+    .as_ref()
+}
+
 /// Evaluates residuals and Jacobians for one model, reusing its solvers and buffers.
 ///
 /// It also remembers the eigenpairs and the per-mode sensitivities of the last θ it saw:
@@ -51,8 +77,9 @@ impl Evaluation {
 /// the one the last solve gave, see [`Evaluator::set_warm_start`]).
 pub struct Evaluator {
     eigen: Box<dyn EigenSolver + Send>,
-    /// Nelson workspaces: one, or for a large model one per core, each differentiating a
-    /// share of the paired modes on its own thread.
+    /// Nelson workspaces, one per core (at most [`SMALL_MODEL_THREADS`] for a model the
+    /// dense solver takes, four for a larger one), each differentiating a share of the
+    /// paired modes on its own thread.
     nelson: Vec<NelsonWorkspace>,
     /// θ, candidate count and eigenpairs of the last solve.
     last_eig: Option<(Vec<f64>, usize, EigenPairs)>,
@@ -85,10 +112,11 @@ impl Evaluator {
         Ok(Self {
             eigen,
             nelson: {
+                let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
                 let threads = if model.n_dof() >= SPARSE_FROM_DOF {
-                    std::thread::available_parallelism().map_or(1, |n| n.get().min(4))
+                    cores.min(4)
                 } else {
-                    1
+                    cores.min(SMALL_MODEL_THREADS)
                 };
                 (0..threads)
                     .map(|_| NelsonWorkspace::new(model))
@@ -197,24 +225,28 @@ impl Evaluator {
         todo.sort_unstable();
         todo.dedup();
         let shares = self.nelson.len().min(todo.len()).max(1);
-        let done: Vec<Result<Vec<(usize, Sensitivity)>, ModalError>> = if shares == 1 {
-            vec![self.nelson[0].modes(model, ev, &todo)]
-        } else {
-            std::thread::scope(|scope| {
-                let handles: Vec<_> = self.nelson[..shares]
-                    .iter_mut()
-                    .enumerate()
-                    .map(|(t, ws)| {
-                        let mine: Vec<usize> =
-                            todo.iter().copied().skip(t).step_by(shares).collect();
-                        scope.spawn(move || ws.modes(model, ev, &mine))
-                    })
-                    .collect();
-                handles
-                    .into_iter()
-                    .map(|h| h.join().expect("a Nelson thread panicked"))
+        let share =
+            |t: usize| -> Vec<usize> { todo.iter().copied().skip(t).step_by(shares).collect() };
+        let done: Vec<Result<Vec<(usize, Sensitivity)>, ModalError>> = match helpers() {
+            Some(pool) if shares > 1 => {
+                // This thread takes the first share, the helpers the others.
+                let (first, rest) = self.nelson[..shares]
+                    .split_first_mut()
+                    .expect("at least one workspace");
+                let mut out: Vec<Option<Result<_, _>>> = (0..shares).map(|_| None).collect();
+                let (out_first, out_rest) = out.split_first_mut().expect("shares > 1");
+                pool.in_place_scope(|scope| {
+                    for (t, (ws, slot)) in rest.iter_mut().zip(out_rest.iter_mut()).enumerate() {
+                        let mine = share(t + 1);
+                        scope.spawn(move |_| *slot = Some(ws.modes(model, ev, &mine)));
+                    }
+                    *out_first = Some(first.modes(model, ev, &share(0)));
+                });
+                out.into_iter()
+                    .map(|r| r.expect("every share ran"))
                     .collect()
-            })
+            }
+            _ => vec![self.nelson[0].modes(model, ev, &todo)],
         };
         for share in done {
             for (k, sens) in share? {
