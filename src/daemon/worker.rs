@@ -357,7 +357,7 @@ impl Worker {
             &format!("writing this set's outputs failed: {failure}"),
             payload,
         );
-        emit(&mut self.out, &Output::Rejected(Box::new(r)))
+        emit(&mut self.out, Output::Rejected(Box::new(r)))
             .context("cannot even publish the rejection of a set whose outputs failed")
     }
 
@@ -394,7 +394,7 @@ impl Worker {
             );
             let mut r = Rejected::dropped(&shared.structure, Utc::now(), n, missed, reason);
             r.id = crate::contract::output_id(&shared.structure, r.time, "missed", missed);
-            emit(&mut self.out, &Output::Rejected(Box::new(r)))?;
+            emit(&mut self.out, Output::Rejected(Box::new(r)))?;
         }
         let dropped = shared.dropped.load(Ordering::Relaxed);
         if dropped == self.dropped_reported {
@@ -408,7 +408,7 @@ impl Worker {
             shared.queue_bytes >> 20
         );
         let r = Rejected::dropped(&shared.structure, Utc::now(), n, dropped, reason);
-        emit(&mut self.out, &Output::Rejected(Box::new(r)))
+        emit(&mut self.out, Output::Rejected(Box::new(r)))
     }
 
     /// Makes the log durable, then writes the tracker's state, with the write-ahead

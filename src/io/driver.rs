@@ -27,14 +27,21 @@ pub trait Sink {
     /// Publishes one output; `bytes` is its wire form ([`Output::to_wire`]).
     fn emit(&mut self, output: &Output, bytes: &[u8]) -> Result<()>;
 
+    /// Publishes one output, encoding it here; a sink that writes on another thread
+    /// takes it as it is and encodes it there.
+    fn emit_owned(&mut self, output: Output) -> Result<()> {
+        let bytes = output.to_wire();
+        self.emit(&output, &bytes)
+    }
+
     /// An off-path job was not run because the lane was busy ([`Pace::Live`]).
     fn skipped(&mut self, _structure: &str, _job: JobKind) {}
 }
 
 /// Publishes `output` on `sink`, encoded once, and logs it.
-pub fn emit(sink: &mut impl Sink, output: &Output) -> Result<()> {
+pub fn emit(sink: &mut impl Sink, output: Output) -> Result<()> {
     output.log();
-    sink.emit(output, &output.to_wire())
+    sink.emit_owned(output)
 }
 
 /// How a driver hands work to the off-path lane (module docs).
@@ -65,7 +72,7 @@ pub fn dispatch(
     for a in actions {
         let job = match a {
             Action::Publish(o) => {
-                emit(sink, &o)?;
+                emit(sink, o)?;
                 continue;
             }
             Action::Checkpoint => {
@@ -223,7 +230,7 @@ impl OffPath {
                 .recv()
                 .map_err(|_| anyhow!("the off-path thread died"))?;
             self.pending -= 1;
-            emit(sink, &out)?;
+            emit(sink, out)?;
         }
         Ok(())
     }
@@ -237,7 +244,7 @@ impl OffPath {
             match self.results.recv_timeout(left) {
                 Ok(out) => {
                     self.pending -= 1;
-                    emit(sink, &out)?;
+                    emit(sink, out)?;
                 }
                 Err(_) => break,
             }
@@ -248,7 +255,7 @@ impl OffPath {
     /// Emits the outputs of the jobs finished so far.
     pub fn emit_ready(&mut self, sink: &mut impl Sink) -> Result<()> {
         while let Some(out) = self.try_result() {
-            emit(sink, &out)?;
+            emit(sink, out)?;
         }
         Ok(())
     }

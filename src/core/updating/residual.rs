@@ -46,27 +46,6 @@ impl Evaluation {
 /// would spend in hand-offs what they save.
 pub const SMALL_MODEL_THREADS: usize = 2;
 
-/// The threads that take the Nelson shares beyond the caller's: one per core but one (at
-/// most three), kept for the process (a thread spawned per Jacobian cost as much as it
-/// saved on the lab frame), and apart from rayon's global pool, which cross-checks keep
-/// busy. `None` on one core.
-fn helpers() -> Option<&'static rayon::ThreadPool> {
-    static POOL: std::sync::OnceLock<Option<rayon::ThreadPool>> = std::sync::OnceLock::new();
-    POOL.get_or_init(|| {
-        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-        if cores < 2 {
-            return None;
-        }
-        rayon::ThreadPoolBuilder::new()
-            .num_threads((cores - 1).min(3))
-            .thread_name(|i| format!("nelson-{i}"))
-            .build()
-            .map_err(|e| tracing::warn!("no helper threads for Nelson's method: {e}"))
-            .ok()
-    })
-    .as_ref()
-}
-
 /// Evaluates residuals and Jacobians for one model, reusing its solvers and buffers.
 ///
 /// It also remembers the eigenpairs and the per-mode sensitivities of the last θ it saw:
@@ -227,7 +206,8 @@ impl Evaluator {
         let shares = self.nelson.len().min(todo.len()).max(1);
         let share =
             |t: usize| -> Vec<usize> { todo.iter().copied().skip(t).step_by(shares).collect() };
-        let done: Vec<Result<Vec<(usize, Sensitivity)>, ModalError>> = match helpers() {
+        let done: Vec<Result<Vec<(usize, Sensitivity)>, ModalError>> = match crate::core::helpers()
+        {
             Some(pool) if shares > 1 => {
                 // This thread takes the first share, the helpers the others.
                 let (first, rest) = self.nelson[..shares]
