@@ -13,11 +13,11 @@ use anyhow::{Context, Result};
 use serde_json::json;
 
 use super::{load_model, write_json};
-use crate::core::model::Csc;
+use crate::core::model::{Csc, ParameterKind};
 
 #[derive(Debug, clap::Args)]
 pub struct ExportArgs {
-    /// Model file (TOML).
+    /// Model file (TOML), or the `model.json` of a model imported from matrices.
     #[arg(long)]
     pub model: PathBuf,
     /// Output directory (created if missing).
@@ -48,6 +48,16 @@ pub fn write_matrix_market(path: &Path, a: &Csc, comment: &str) -> Result<()> {
     }
     w.flush()
         .with_context(|| format!("cannot write {}", path.display()))
+}
+
+/// The `kind` of a parameter in `model.json`.
+fn kind_name(kind: &ParameterKind) -> &'static str {
+    match kind {
+        ParameterKind::Connections(_) => "connection",
+        ParameterKind::Modulus(_) => "modulus",
+        ParameterKind::Springs(_) => "spring",
+        ParameterKind::Matrix(_) => "matrix",
+    }
 }
 
 pub fn run(args: &ExportArgs) -> Result<()> {
@@ -92,9 +102,19 @@ pub fn run(args: &ExportArgs) -> Result<()> {
             "n_dof": model.n_dof(),
             "stiffness": "K(θ) = K0 + Σ θ_l K_l",
             "files": files.iter().map(|(n, _)| format!("{n}.mtx")).collect::<Vec<_>>(),
-            "parameters": model.parameters().iter().map(|p| json!({
-                "name": p.name, "nominal": p.nominal, "file": format!("K_{}.mtx", p.name)
-            })).collect::<Vec<_>>(),
+            "parameters": model.parameters().iter().enumerate().map(|(l, p)| {
+                let mut e = json!({
+                    "name": p.name,
+                    "nominal": p.nominal,
+                    "file": format!("K_{}.mtx", p.name),
+                    "kind": kind_name(&p.kind),
+                });
+                if let Some(k) = model.connection_stiffness(l) {
+                    e["stiffness"] = json!(k);
+                }
+                e
+            }).collect::<Vec<_>>(),
+            "bayesian": model.bayesian,
             "channels": model.channels().iter().map(|c| json!({
                 "name": c.name,
                 "dofs": c.dofs.iter().map(|&(i, w)| json!([i, w])).collect::<Vec<_>>(),

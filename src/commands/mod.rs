@@ -25,7 +25,7 @@ pub use crate::io::model::{load_model, load_spec};
 /// `--model M.toml [--theta a,b,…]`: a model evaluated at θ (default: its nominal θ).
 #[derive(Debug, clap::Args)]
 pub struct ModelAtTheta {
-    /// Model file (TOML).
+    /// Model file (TOML), or the `model.json` of a model imported from matrices.
     #[arg(long)]
     pub model: PathBuf,
     /// Parameter values θ, comma separated (default: the model's nominal θ).

@@ -29,7 +29,7 @@ pub enum Method {
 
 #[derive(Debug, clap::Args)]
 pub struct UpdateArgs {
-    /// Model file (TOML).
+    /// Model file (TOML), or the `model.json` of a model imported from matrices.
     #[arg(long)]
     pub model: PathBuf,
     /// Modal set (boltwatch.modal_set.v1).

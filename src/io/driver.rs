@@ -129,8 +129,9 @@ impl Job {
 /// Diagnoses (rare: one per model-inadequacy episode) that may wait behind a running job.
 pub const DIAGNOSES_QUEUED: usize = 4;
 
-/// A watched structure's model, in its text form (the diagnosis enriches it) and assembled.
-pub type StructureModel = Arc<(ModelSpec, Model)>;
+/// A watched structure's model, in its text form (the diagnosis enriches it; none for a
+/// model imported from matrices) and assembled.
+pub type StructureModel = Arc<(Option<ModelSpec>, Model)>;
 
 /// The thread that runs cross-checks and diagnoses, in submission order, for the
 /// structures it is given. At most one cross-check is pending (one requested while another
@@ -167,7 +168,7 @@ impl OffPath {
                             &req,
                         ))),
                         Job::Diagnose(req) => Output::Alert(Box::new(diagnosis_alert(
-                            spec,
+                            spec.as_ref(),
                             model,
                             shape_weight,
                             &req,

@@ -11,24 +11,46 @@ use crate::settings::StructureSettings;
 
 /// Reads a model file without assembling it.
 pub fn load_spec(path: &Path) -> Result<ModelSpec> {
+    if is_matrices(path) {
+        bail!(
+            "model {}: a model imported from matrices is read by modes, simulate, update, sweep-sigma, export-matrices, replay and run; this needs a TOML model file (diagnosing an imported model is not done yet)",
+            path.display()
+        );
+    }
     let text = std::fs::read_to_string(path)
         .with_context(|| format!("cannot read model file {}", path.display()))?;
     toml::from_str(&text).with_context(|| format!("model file {}", path.display()))
 }
 
-/// Reads and assembles a model file.
+/// Reads and assembles a model file, or imports a model from matrices when `path` is a
+/// `boltwatch.matrices.v1` `model.json` ([`crate::core::model::import`]).
 pub fn load_model(path: &Path) -> Result<Model> {
+    if is_matrices(path) {
+        return Ok(crate::core::model::import::read_matrices(path)?);
+    }
     let text = std::fs::read_to_string(path)
         .with_context(|| format!("cannot read model file {}", path.display()))?;
     Model::from_toml(&text).with_context(|| format!("model file {}", path.display()))
 }
 
+/// Whether `path` names an imported model's `model.json` (rather than a TOML model file).
+pub fn is_matrices(path: &Path) -> bool {
+    path.extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("json"))
+}
+
 /// The model file of a watched structure, read once: its text form (the diagnosis
-/// enriches it) and its assembly, checked to describe that structure.
-pub fn load_structure(s: &StructureSettings) -> Result<(ModelSpec, Model)> {
-    let spec = load_spec(&s.model)?;
-    let model =
-        Model::from_spec(&spec).with_context(|| format!("model file {}", s.model.display()))?;
+/// enriches it; none for a model imported from matrices) and its assembly, checked to
+/// describe that structure.
+pub fn load_structure(s: &StructureSettings) -> Result<(Option<ModelSpec>, Model)> {
+    let (spec, model) = if is_matrices(&s.model) {
+        (None, load_model(&s.model)?)
+    } else {
+        let spec = load_spec(&s.model)?;
+        let model =
+            Model::from_spec(&spec).with_context(|| format!("model file {}", s.model.display()))?;
+        (Some(spec), model)
+    };
     if model.name != s.name {
         bail!(
             "configuration key structures: structure `{}` has model file {} describing `{}`",

@@ -212,18 +212,8 @@ impl Tracker {
             .iter()
             .map(|p| matches!(p.kind, ParameterKind::Connections(_)))
             .collect();
-        let k_nominal = model
-            .parameters()
-            .iter()
-            .map(|p| match &p.kind {
-                ParameterKind::Connections(c) => {
-                    let k0 = model.connections()[*c.first()?].k;
-                    c.iter()
-                        .all(|&i| model.connections()[i].k == k0)
-                        .then_some(k0)
-                }
-                _ => None,
-            })
+        let k_nominal = (0..model.n_params())
+            .map(|l| model.connection_stiffness(l))
             .collect();
         let model_channel_names = model.channels().iter().map(|c| c.name.clone()).collect();
         let mut evaluator = Evaluator::new(&model)?;

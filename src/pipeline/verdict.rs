@@ -13,18 +13,21 @@ use crate::core::model::spec::ModelSpec;
 
 /// The follow-up alert payload (module docs).
 pub fn diagnosis_alert(
-    spec: &ModelSpec,
+    spec: Option<&ModelSpec>,
     model: &Model,
     shape_weight: f64,
     req: &DiagnoseRequest,
 ) -> Alert {
     let data = measured_data(&req.set, model, shape_weight);
-    let (diagnosis, message) = match diagnose(
-        spec,
-        &data,
-        &DiagnosisOptions::default(),
-        |_, _, _| {},
-    ) {
+    let diagnosed = match spec {
+        Some(spec) => diagnose(spec, &data, &DiagnosisOptions::default(), |_, _, _| {})
+            .map_err(|e| e.to_string()),
+        None => Err(
+            "the model was imported from matrices, and diagnosing an imported model is not done yet (issue 24)"
+                .to_string(),
+        ),
+    };
+    let (diagnosis, message) = match diagnosed {
         Ok(d) => {
             let named = d
                 .named
@@ -95,9 +98,7 @@ pub fn diagnosis_alert(
             )
         }
         Err(e) => (
-            Verdict::Failed {
-                error: e.to_string(),
-            },
+            Verdict::Failed { error: e.clone() },
             format!("diagnosis of the model-inadequacy warning failed: {e}"),
         ),
     };

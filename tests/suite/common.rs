@@ -139,3 +139,14 @@ pub fn python_venv(name: &str, import_check: &str, packages: &[&str]) -> std::pa
     }
     python
 }
+
+/// What an independent validator (the `jsonschema` crate) finds wrong with `instance`
+/// against the JSON schema `schema` (text).
+pub fn schema_errors(schema: &str, instance: &serde_json::Value) -> Vec<String> {
+    let schema: serde_json::Value = serde_json::from_str(schema).unwrap();
+    jsonschema::validator_for(&schema)
+        .unwrap()
+        .iter_errors(instance)
+        .map(|e| e.to_string())
+        .collect()
+}

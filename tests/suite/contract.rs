@@ -18,13 +18,8 @@ use super::tracker::{run_replay, settings, tmp_dir};
 /// checks that it writes the same bytes.
 fn check(suffix: &str, bytes: &[u8]) -> Output {
     let (_, text) = for_topic(suffix).unwrap();
-    let schema: Value = serde_json::from_str(text).unwrap();
-    let validator = jsonschema::validator_for(&schema).unwrap();
     let instance: Value = serde_json::from_slice(bytes).unwrap();
-    let errors: Vec<String> = validator
-        .iter_errors(&instance)
-        .map(|e| e.to_string())
-        .collect();
+    let errors = super::common::schema_errors(text, &instance);
     assert!(
         errors.is_empty(),
         "{suffix}: {errors:?}\n{}",

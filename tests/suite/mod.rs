@@ -9,6 +9,7 @@ mod diagnosis;
 mod fe;
 mod fuzz;
 mod golden;
+mod import;
 mod modal_set;
 mod mode_matching;
 mod replay_cli;

@@ -11,6 +11,7 @@ mod assemble;
 pub mod element;
 mod finish;
 pub mod hex20;
+pub mod import;
 pub mod mesh;
 pub mod solid;
 pub mod sparse;
@@ -30,6 +31,8 @@ pub enum ParameterKind {
     Modulus(Vec<String>),
     /// Discrete springs (names).
     Springs(Vec<String>),
+    /// A stiffness matrix read from a file (an imported model, [`import`]).
+    Matrix(String),
 }
 
 /// One updating parameter θ_l.
@@ -150,6 +153,15 @@ impl Model {
     pub fn channel_index(&self, name: &str) -> Option<usize> {
         self.channels.iter().position(|c| c.name == name)
     }
+    /// The nominal rotational stiffness (N·m/rad) of the connections parameter `l` scales,
+    /// when it scales connections that share one (what θ_l multiplies in an estimate).
+    pub fn connection_stiffness(&self, l: usize) -> Option<f64> {
+        let ParameterKind::Connections(c) = &self.parameters[l].kind else {
+            return None;
+        };
+        let k = self.connections[*c.first()?].k;
+        c.iter().all(|&i| self.connections[i].k == k).then_some(k)
+    }
     /// The nominal parameter vector θ0.
     pub fn nominal_theta(&self) -> Vec<f64> {
         self.parameters.iter().map(|p| p.nominal).collect()
@@ -164,6 +176,7 @@ impl Model {
                 .collect(),
             ParameterKind::Modulus(m) => m.iter().map(|n| ("member", n.clone())).collect(),
             ParameterKind::Springs(s) => s.iter().map(|n| ("spring", n.clone())).collect(),
+            ParameterKind::Matrix(f) => vec![("matrix", f.clone())],
         }
     }
 

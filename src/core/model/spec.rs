@@ -64,7 +64,7 @@ pub struct ModelSpec {
 
 /// `[bayesian] sigma_c = 1e4, prior_std = 1000.0`: σ_c and the prior standard deviation of
 /// every θ_l (`Σ_θ = diag(prior_std²)`), both optional.
-#[derive(Debug, Clone, Default, PartialEq, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct BayesSpec {
     pub sigma_c: Option<f64>,

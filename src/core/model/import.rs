@@ -1,0 +1,641 @@
+//! Models from matrices (`boltwatch.matrices.v1`, what `boltwatch export-matrices` writes
+//! and any FE program can): `model.json` (the structure's name, the DOF count, the
+//! parameters with their `K_l` files, the channels as rows of `D`), `dofs.txt` (one DOF
+//! label per line) and Matrix Market files for `K0`, every `K_l` and `M`.
+//!
+//! Matrix Market as programs write it: `coordinate real` (or `integer`), `symmetric` with
+//! either triangle stored, or `general` (then checked for symmetry); `pattern`, `complex`,
+//! `hermitian`, `skew-symmetric` and dense `array` files are refused. Every error names the
+//! file and the entry (line), and nothing is half-loaded: the model exists only once every
+//! file has been read and checked.
+
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+use super::finish::finish;
+use super::sparse::{Csc, csc_from_triplets};
+use super::spec::BayesSpec;
+use super::{Channel, Connection, Model, ModelError, Parameter, ParameterKind};
+
+/// The schema name in `model.json`.
+pub const MATRICES_SCHEMA: &str = "boltwatch.matrices.v1";
+
+/// Relative tolerance of the symmetry check of a `general` file: `|a_ij − a_ji|` against
+/// the largest `|a|` of the matrix (a few roundings of a program that assembles both
+/// triangles separately).
+pub const SYMMETRY_TOL: f64 = 1e-12;
+
+/// An import error: the file, and what is wrong where.
+#[derive(Debug, thiserror::Error, PartialEq)]
+#[error("{file}: {reason}")]
+pub struct ImportError {
+    pub file: String,
+    pub reason: String,
+}
+
+fn err(file: &Path, reason: impl Into<String>) -> ImportError {
+    ImportError {
+        file: file.display().to_string(),
+        reason: reason.into(),
+    }
+}
+
+/// `model.json`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct MatricesFile {
+    schema: String,
+    structure: String,
+    n_dof: usize,
+    /// Informative (`K(θ) = K0 + Σ θ_l K_l`).
+    #[serde(default)]
+    #[allow(dead_code)]
+    stiffness: Option<String>,
+    /// Informative: every file (the ones read are named below).
+    #[serde(default)]
+    #[allow(dead_code)]
+    files: Vec<String>,
+    #[serde(default = "default_k0")]
+    k0: String,
+    #[serde(default = "default_m")]
+    mass: String,
+    #[serde(default = "default_dofs")]
+    dofs: String,
+    parameters: Vec<ParameterEntry>,
+    #[serde(default)]
+    channels: Vec<ChannelEntry>,
+    /// Defaults of the Bayesian MAP, as a model file's `[bayesian]`.
+    #[serde(default)]
+    bayesian: BayesSpec,
+}
+
+fn default_k0() -> String {
+    "K0.mtx".into()
+}
+fn default_m() -> String {
+    "M.mtx".into()
+}
+fn default_dofs() -> String {
+    "dofs.txt".into()
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ParameterEntry {
+    name: String,
+    nominal: f64,
+    file: String,
+    /// What `K_l` is: `connection` (bolted connections: loosening alerts watch it),
+    /// `modulus`, `spring` or `matrix` (the default: anything else).
+    #[serde(default)]
+    kind: Kind,
+    /// For a `connection`: the nominal rotational stiffness θ_l multiplies (N·m/rad),
+    /// reported in the estimates as `k·θ`.
+    #[serde(default)]
+    stiffness: Option<f64>,
+}
+
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+enum Kind {
+    Connection,
+    Modulus,
+    Spring,
+    #[default]
+    Matrix,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ChannelEntry {
+    name: String,
+    /// `[dof index (0-based), weight]` pairs.
+    dofs: Vec<(usize, f64)>,
+}
+
+/// Reads a `boltwatch.matrices.v1` model from its `model.json`.
+pub fn read_matrices(json: &Path) -> Result<Model, ImportError> {
+    let text = std::fs::read_to_string(json).map_err(|e| err(json, format!("cannot read: {e}")))?;
+    let file: MatricesFile =
+        serde_json::from_str(&text).map_err(|e| err(json, format!("not a matrices file: {e}")))?;
+    if file.schema != MATRICES_SCHEMA {
+        return Err(err(
+            json,
+            format!(
+                "schema: expected {MATRICES_SCHEMA:?}, got {:?}",
+                file.schema
+            ),
+        ));
+    }
+    if file.structure.trim().is_empty() {
+        return Err(err(json, "structure: empty name"));
+    }
+    let n = file.n_dof;
+    if n == 0 {
+        return Err(err(json, "n_dof: must be at least 1"));
+    }
+    let dir = json.parent().unwrap_or(Path::new("."));
+    let at = |name: &str| -> PathBuf { dir.join(name) };
+
+    // Parameters and channels first: cheap checks before the large files.
+    let mut names = HashSet::new();
+    for (l, p) in file.parameters.iter().enumerate() {
+        if p.name.trim().is_empty() {
+            return Err(err(json, format!("parameters[{l}].name: empty")));
+        }
+        if !names.insert(p.name.as_str()) {
+            return Err(err(
+                json,
+                format!("parameters[{l}].name: `{}` is defined twice", p.name),
+            ));
+        }
+        if let Some(k) = p.stiffness
+            && (p.kind != Kind::Connection || !(k.is_finite() && k > 0.0))
+        {
+            return Err(err(
+                json,
+                format!(
+                    "parameters.{}.stiffness: {k} (a finite number > 0, for a `connection` only)",
+                    p.name
+                ),
+            ));
+        }
+        if !(p.nominal.is_finite() && p.nominal > 0.0) {
+            return Err(err(
+                json,
+                format!(
+                    "parameters.{}.nominal: must be a finite number > 0, got {}",
+                    p.name, p.nominal
+                ),
+            ));
+        }
+    }
+    if file.parameters.is_empty() {
+        return Err(err(json, "parameters: none (at least one K_l is needed)"));
+    }
+    let mut channel_names = HashSet::new();
+    for (c, ch) in file.channels.iter().enumerate() {
+        if !channel_names.insert(ch.name.as_str()) {
+            return Err(err(
+                json,
+                format!("channels[{c}].name: `{}` is defined twice", ch.name),
+            ));
+        }
+        if ch.dofs.is_empty() {
+            return Err(err(json, format!("channels.{}.dofs: empty", ch.name)));
+        }
+        for &(i, w) in &ch.dofs {
+            if i >= n {
+                return Err(err(
+                    json,
+                    format!(
+                        "channels.{}.dofs: DOF {i} is out of range (n_dof = {n}, 0-based)",
+                        ch.name
+                    ),
+                ));
+            }
+            if !w.is_finite() {
+                return Err(err(
+                    json,
+                    format!("channels.{}.dofs: weight of DOF {i} is {w}", ch.name),
+                ));
+            }
+        }
+    }
+
+    let dofs_path = at(&file.dofs);
+    let labels = read_labels(&dofs_path, n)?;
+    let mut mats = Vec::with_capacity(file.parameters.len() + 2);
+    mats.push(read_matrix_market(&at(&file.k0), n)?);
+    for p in &file.parameters {
+        mats.push(read_matrix_market(&at(&p.file), n)?);
+    }
+    mats.push(read_matrix_market(&at(&file.mass), n)?);
+
+    // A connection parameter with a stiffness stands for one connection of that stiffness
+    // (named after it); the file's name stands for the members and springs.
+    let mut connections = Vec::new();
+    let parameters = file
+        .parameters
+        .iter()
+        .enumerate()
+        .map(|(l, p)| Parameter {
+            name: p.name.clone(),
+            nominal: p.nominal,
+            kind: match p.kind {
+                Kind::Connection => ParameterKind::Connections(
+                    p.stiffness
+                        .map(|k| {
+                            connections.push(Connection {
+                                name: p.name.clone(),
+                                member: p.file.clone(),
+                                node: String::new(),
+                                k,
+                                parameter: Some(l),
+                            });
+                            vec![connections.len() - 1]
+                        })
+                        .unwrap_or_default(),
+                ),
+                Kind::Modulus => ParameterKind::Modulus(vec![p.file.clone()]),
+                Kind::Spring => ParameterKind::Springs(vec![p.file.clone()]),
+                Kind::Matrix => ParameterKind::Matrix(p.file.clone()),
+            },
+        })
+        .collect();
+    let channels = file
+        .channels
+        .into_iter()
+        .map(|c| Channel {
+            name: c.name,
+            dofs: c.dofs,
+        })
+        .collect();
+    let mass_path = at(&file.mass);
+    finish(
+        &file.structure,
+        labels,
+        mats,
+        parameters,
+        connections,
+        channels,
+        file.bayesian,
+    )
+    .map_err(|e| match e {
+        ModelError::MasslessDof { .. } => err(&mass_path, e.to_string()),
+        _ => err(json, e.to_string()),
+    })
+}
+
+/// `dofs.txt`: exactly `n` non-empty, distinct labels.
+fn read_labels(path: &Path, n: usize) -> Result<Vec<String>, ImportError> {
+    let text = std::fs::read_to_string(path).map_err(|e| err(path, format!("cannot read: {e}")))?;
+    let labels: Vec<String> = text.lines().map(|l| l.trim().to_string()).collect();
+    let labels: Vec<String> = match labels.last() {
+        Some(l) if l.is_empty() => labels[..labels.len() - 1].to_vec(),
+        _ => labels,
+    };
+    if labels.len() != n {
+        return Err(err(
+            path,
+            format!("{} labels for n_dof = {n}", labels.len()),
+        ));
+    }
+    let mut seen = HashSet::new();
+    for (k, l) in labels.iter().enumerate() {
+        if l.is_empty() {
+            return Err(err(path, format!("line {}: empty label", k + 1)));
+        }
+        if !seen.insert(l.as_str()) {
+            return Err(err(
+                path,
+                format!("line {}: label `{l}` is given twice", k + 1),
+            ));
+        }
+    }
+    Ok(labels)
+}
+
+/// How a Matrix Market file stores its matrix.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Symmetry {
+    Symmetric,
+    General,
+}
+
+/// Reads an `n × n` symmetric matrix from a Matrix Market file (module docs), as a CSC
+/// matrix with both triangles stored.
+pub fn read_matrix_market(path: &Path, n: usize) -> Result<Csc, ImportError> {
+    let text = std::fs::read_to_string(path).map_err(|e| err(path, format!("cannot read: {e}")))?;
+    let mut lines = text.lines().enumerate();
+    let (_, header) = lines
+        .next()
+        .ok_or_else(|| err(path, "empty file (no %%MatrixMarket header)"))?;
+    let h: Vec<String> = header
+        .split_whitespace()
+        .map(|t| t.to_ascii_lowercase())
+        .collect();
+    if h.len() != 5 || h[0] != "%%matrixmarket" || h[1] != "matrix" {
+        return Err(err(
+            path,
+            format!("line 1: not a Matrix Market matrix header: {header:?}"),
+        ));
+    }
+    if h[2] != "coordinate" {
+        return Err(err(
+            path,
+            format!(
+                "line 1: `{}` format is not read (write the matrix as `coordinate`)",
+                h[2]
+            ),
+        ));
+    }
+    if h[3] != "real" && h[3] != "integer" {
+        return Err(err(
+            path,
+            format!(
+                "line 1: `{}` entries are not read (a stiffness or mass matrix is `real`)",
+                h[3]
+            ),
+        ));
+    }
+    let symmetry = match h[4].as_str() {
+        "symmetric" => Symmetry::Symmetric,
+        "general" => Symmetry::General,
+        other => {
+            return Err(err(
+                path,
+                format!(
+                    "line 1: `{other}` matrices are not read (a stiffness or mass matrix is `symmetric`, or `general` with symmetric values)"
+                ),
+            ));
+        }
+    };
+    // The size line, after the comments.
+    let (size_line, size) = loop {
+        let (k, line) = lines
+            .next()
+            .ok_or_else(|| err(path, "no size line after the header"))?;
+        let t = line.trim();
+        if t.is_empty() || t.starts_with('%') {
+            continue;
+        }
+        break (k + 1, t);
+    };
+    let dims: Vec<usize> = size
+        .split_whitespace()
+        .map(|t| t.parse::<usize>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| {
+            err(
+                path,
+                format!("line {size_line}: expected `rows cols entries`, got {size:?}"),
+            )
+        })?;
+    let [rows, cols, nnz] = dims[..] else {
+        return Err(err(
+            path,
+            format!("line {size_line}: expected `rows cols entries`, got {size:?}"),
+        ));
+    };
+    if rows != n || cols != n {
+        return Err(err(
+            path,
+            format!("line {size_line}: the matrix is {rows} × {cols}, the model has {n} DOFs"),
+        ));
+    }
+    let mut entries: Vec<(usize, usize, f64)> = Vec::with_capacity(nnz);
+    for (k, line) in lines {
+        let t = line.trim();
+        if t.is_empty() || t.starts_with('%') {
+            continue;
+        }
+        let bad = || {
+            err(
+                path,
+                format!("line {}: expected `row col value`, got {t:?}", k + 1),
+            )
+        };
+        let mut it = t.split_whitespace();
+        let (Some(i), Some(j), Some(v), None) = (it.next(), it.next(), it.next(), it.next()) else {
+            return Err(bad());
+        };
+        let (Ok(i), Ok(j), Ok(v)) = (i.parse::<usize>(), j.parse::<usize>(), v.parse::<f64>())
+        else {
+            return Err(bad());
+        };
+        if i == 0 || j == 0 || i > n || j > n {
+            return Err(err(
+                path,
+                format!(
+                    "line {}: entry ({i}, {j}) is outside the {n} × {n} matrix (indices are 1-based)",
+                    k + 1
+                ),
+            ));
+        }
+        if !v.is_finite() {
+            return Err(err(
+                path,
+                format!("line {}: entry ({i}, {j}) is {v}", k + 1),
+            ));
+        }
+        entries.push((i - 1, j - 1, v));
+    }
+    if entries.len() != nnz {
+        return Err(err(
+            path,
+            format!(
+                "line {size_line} announces {nnz} entries, the file has {}",
+                entries.len()
+            ),
+        ));
+    }
+    let lower: Vec<(usize, usize, f64)> = match symmetry {
+        Symmetry::Symmetric => {
+            // One triangle, whichever; an off-diagonal pair given twice would count twice.
+            let mut seen = HashSet::with_capacity(entries.len());
+            let mut out = Vec::with_capacity(entries.len());
+            for &(i, j, v) in &entries {
+                let (r, c) = if i >= j { (i, j) } else { (j, i) };
+                if !seen.insert((r, c)) {
+                    return Err(err(
+                        path,
+                        format!(
+                            "entry ({}, {}) is given twice (a `symmetric` file stores one triangle)",
+                            r + 1,
+                            c + 1
+                        ),
+                    ));
+                }
+                out.push((r, c, v));
+            }
+            out
+        }
+        Symmetry::General => symmetric_lower(path, n, &entries)?,
+    };
+    let both = lower.iter().copied().chain(
+        lower
+            .iter()
+            .filter(|e| e.0 != e.1)
+            .map(|&(i, j, v)| (j, i, v)),
+    );
+    Ok(csc_from_triplets(n, both))
+}
+
+/// The lower triangle of a `general` file's matrix, checked to be symmetric within
+/// [`SYMMETRY_TOL`] (duplicates summed, as Matrix Market readers do).
+fn symmetric_lower(
+    path: &Path,
+    n: usize,
+    entries: &[(usize, usize, f64)],
+) -> Result<Vec<(usize, usize, f64)>, ImportError> {
+    let a = csc_from_triplets(n, entries.iter().copied());
+    let at = csc_from_triplets(n, entries.iter().map(|&(i, j, v)| (j, i, v)));
+    let scale = a.val().iter().fold(0.0_f64, |m, v| m.max(v.abs()));
+    let (sa, st) = (a.symbolic(), at.symbolic());
+    let mut lower = Vec::with_capacity(entries.len() / 2 + n);
+    for j in 0..n {
+        // Merge column j of A and of Aᵀ (rows sorted); a missing entry is zero.
+        let (ra, va) = (sa.row_idx_of_col_raw(j), a.val_of_col(j));
+        let (rt, vt) = (st.row_idx_of_col_raw(j), at.val_of_col(j));
+        let (mut p, mut q) = (0, 0);
+        while p < ra.len() || q < rt.len() {
+            let (i, x, y) = match (ra.get(p), rt.get(q)) {
+                (Some(&ia), Some(&it)) if ia == it => {
+                    p += 1;
+                    q += 1;
+                    (ia, va[p - 1], vt[q - 1])
+                }
+                (Some(&ia), Some(&it)) if ia < it => {
+                    p += 1;
+                    (ia, va[p - 1], 0.0)
+                }
+                (Some(_), Some(&it)) | (None, Some(&it)) => {
+                    q += 1;
+                    (it, 0.0, vt[q - 1])
+                }
+                (Some(&ia), None) => {
+                    p += 1;
+                    (ia, va[p - 1], 0.0)
+                }
+                (None, None) => unreachable!("the loop condition"),
+            };
+            if (x - y).abs() > SYMMETRY_TOL * scale {
+                return Err(err(
+                    path,
+                    format!(
+                        "not symmetric: entry ({}, {}) is {x:e}, entry ({}, {}) is {y:e}",
+                        i + 1,
+                        j + 1,
+                        j + 1,
+                        i + 1
+                    ),
+                ));
+            }
+            if i >= j {
+                lower.push((i, j, x));
+            }
+        }
+    }
+    Ok(lower)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
+        let p = dir.join(name);
+        std::fs::write(&p, text).unwrap();
+        p
+    }
+
+    fn tmp(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("bw-import-{name}-{}", std::process::id()));
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    }
+
+    fn dense(a: &Csc, n: usize) -> Vec<Vec<f64>> {
+        let s = a.symbolic();
+        let mut m = vec![vec![0.0; n]; n];
+        for (j, c) in (0..n).map(|j| (j, s.row_idx_of_col_raw(j))) {
+            for (&i, &v) in c.iter().zip(a.val_of_col(j)) {
+                m[i][j] += v;
+            }
+        }
+        m
+    }
+
+    /// The same matrix stored as the lower triangle, as the upper triangle and as a
+    /// `general` file reads back identically, with both triangles.
+    #[test]
+    fn either_triangle_or_general_reads_the_same_matrix() {
+        let d = tmp("triangles");
+        let want = vec![
+            vec![4.0, -1.0, 0.0],
+            vec![-1.0, 4.0, -2.5],
+            vec![0.0, -2.5, 3.0],
+        ];
+        let lower = write(
+            &d,
+            "l.mtx",
+            "%%MatrixMarket matrix coordinate real symmetric\n% c\n3 3 5\n1 1 4\n2 1 -1\n2 2 4\n3 2 -2.5\n3 3 3\n",
+        );
+        let upper = write(
+            &d,
+            "u.mtx",
+            "%%MatrixMarket matrix coordinate real symmetric\n3 3 5\n1 1 4\n1 2 -1\n2 2 4\n2 3 -2.5\n3 3 3\n",
+        );
+        let general = write(
+            &d,
+            "g.mtx",
+            "%%MatrixMarket matrix coordinate real general\n3 3 7\n1 1 4\n1 2 -1\n2 1 -1\n2 2 4\n2 3 -2.5\n3 2 -2.5\n3 3 3\n",
+        );
+        for p in [lower, upper, general] {
+            let a = read_matrix_market(&p, 3).unwrap();
+            assert_eq!(dense(&a, 3), want, "{}", p.display());
+        }
+    }
+
+    #[test]
+    fn malformed_matrix_files_are_refused_naming_the_entry() {
+        let d = tmp("malformed");
+        let cases = [
+            (
+                "pattern",
+                "%%MatrixMarket matrix coordinate pattern symmetric\n2 2 1\n1 1\n",
+                "`pattern` entries",
+            ),
+            (
+                "complex",
+                "%%MatrixMarket matrix coordinate complex symmetric\n2 2 1\n1 1 1 0\n",
+                "`complex` entries",
+            ),
+            (
+                "array",
+                "%%MatrixMarket matrix array real general\n2 2\n1\n0\n0\n1\n",
+                "`array` format",
+            ),
+            (
+                "size",
+                "%%MatrixMarket matrix coordinate real symmetric\n3 3 1\n1 1 1\n",
+                "3 × 3, the model has 2",
+            ),
+            (
+                "range",
+                "%%MatrixMarket matrix coordinate real symmetric\n2 2 1\n3 1 1\n",
+                "entry (3, 1) is outside",
+            ),
+            (
+                "nan",
+                "%%MatrixMarket matrix coordinate real symmetric\n2 2 1\n1 1 nan\n",
+                "line 3: entry (1, 1) is NaN",
+            ),
+            (
+                "count",
+                "%%MatrixMarket matrix coordinate real symmetric\n2 2 2\n1 1 1\n",
+                "announces 2 entries, the file has 1",
+            ),
+            (
+                "twice",
+                "%%MatrixMarket matrix coordinate real symmetric\n2 2 2\n2 1 1\n1 2 1\n",
+                "entry (2, 1) is given twice",
+            ),
+            (
+                "asym",
+                "%%MatrixMarket matrix coordinate real general\n2 2 2\n2 1 1\n1 2 2\n",
+                "not symmetric: entry (2, 1)",
+            ),
+            ("header", "hello\n", "not a Matrix Market matrix header"),
+        ];
+        for (name, text, want) in cases {
+            let p = write(&d, &format!("{name}.mtx"), text);
+            let e = read_matrix_market(&p, 2).unwrap_err();
+            assert!(e.file.ends_with(&format!("{name}.mtx")), "{e}");
+            assert!(e.reason.contains(want), "{name}: {e}");
+        }
+    }
+}
