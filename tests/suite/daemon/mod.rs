@@ -48,9 +48,45 @@ impl Daemon {
     /// configuration (no `[zenoh]`/`[daemon]`/`[metrics]` tables in `extra`: use
     /// `daemon_keys` for keys of `[daemon]`).
     pub fn start(dir: &Path, daemon_keys: &str, extra: &str) -> Self {
-        let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-        let zenoh = format!("listen = [\"{endpoint}\"]");
-        Self::start_with(dir, &zenoh, endpoint, daemon_keys, extra)
+        Self::start_listening(dir, daemon_keys, extra, &[])
+    }
+
+    /// A daemon on fresh loopback ports, returned once it accepts connections. A port
+    /// [`free_port`] found free can be taken before the daemon binds it (by another
+    /// test's connection): then the daemon exits at start, and it is started again on
+    /// other ports.
+    fn start_listening(dir: &Path, daemon_keys: &str, extra: &str, env: &[(&str, &str)]) -> Self {
+        let env: Vec<(String, String)> = env
+            .iter()
+            .map(|(k, v)| (k.to_string(), v.to_string()))
+            .collect();
+        for _ in 0..5 {
+            let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+            let zenoh = format!("listen = [\"{endpoint}\"]");
+            let mut d = Self::start_full(dir, &zenoh, endpoint, daemon_keys, extra, env.clone());
+            let port = d.endpoint.rsplit(':').next().unwrap().to_string();
+            let deadline = Instant::now() + Duration::from_secs(60);
+            loop {
+                if std::net::TcpStream::connect(format!("127.0.0.1:{port}")).is_ok() {
+                    return d;
+                }
+                if d.child.try_wait().unwrap().is_some() {
+                    let log = d.log();
+                    assert!(
+                        log.contains("in use") || log.contains("Can not create a new TCP listener"),
+                        "the daemon exited at start; its log:\n{log}"
+                    );
+                    break;
+                }
+                assert!(
+                    Instant::now() < deadline,
+                    "the daemon did not listen within 60 s; its log:\n{}",
+                    d.log()
+                );
+                std::thread::sleep(Duration::from_millis(20));
+            }
+        }
+        panic!("no free port for the daemon in 5 tries");
     }
 
     /// [`Daemon::start`] with the `[zenoh]` table's body given; clients reach it at
@@ -67,13 +103,7 @@ impl Daemon {
 
     /// [`Daemon::start`] with extra environment variables.
     pub fn start_env(dir: &Path, env: &[(&str, &str)]) -> Self {
-        let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-        let zenoh = format!("listen = [\"{endpoint}\"]");
-        let env = env
-            .iter()
-            .map(|(k, v)| (k.to_string(), v.to_string()))
-            .collect();
-        Self::start_full(dir, &zenoh, endpoint, "", "", env)
+        Self::start_listening(dir, "", "", env)
     }
 
     fn start_full(
