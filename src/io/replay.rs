@@ -132,8 +132,11 @@ struct OutputFile {
 
 impl Sink for OutputFile {
     fn emit(&mut self, output: &Output, bytes: &[u8]) -> Result<()> {
-        self.writer
-            .send(WriterJob::Encoded(output.clone(), bytes.to_vec()))?;
+        self.writer.send(WriterJob::Encoded {
+            topic: topic(output.structure(), output.topic()),
+            time: to_ns(output.time())?,
+            bytes: bytes.to_vec(),
+        })?;
         self.summary.note(output);
         self.written += 1;
         Ok(())
@@ -166,7 +169,11 @@ impl OutputFile {
 /// Work for the [`Writer`] thread.
 enum WriterJob {
     Output(Output),
-    Encoded(Output, Vec<u8>),
+    Encoded {
+        topic: String,
+        time: u64,
+        bytes: Vec<u8>,
+    },
     Sync(mpsc::Sender<Result<()>>),
 }
 
@@ -185,14 +192,16 @@ impl Writer {
         let thread = std::thread::Builder::new()
             .name("replay-writer".into())
             .spawn(move || -> Result<McapWriter> {
-                let write = |w: &mut McapWriter, o: &Output, bytes: &[u8]| -> Result<()> {
-                    let t = to_ns(o.time())?;
-                    w.write(&topic(o.structure(), o.topic()), t, bytes)
-                };
                 for job in rx {
                     match job {
-                        WriterJob::Output(o) => write(&mut w, &o, &o.to_wire())?,
-                        WriterJob::Encoded(o, bytes) => write(&mut w, &o, &bytes)?,
+                        WriterJob::Output(o) => w.write(
+                            &topic(o.structure(), o.topic()),
+                            to_ns(o.time())?,
+                            &o.to_wire(),
+                        )?,
+                        WriterJob::Encoded { topic, time, bytes } => {
+                            w.write(&topic, time, &bytes)?
+                        }
                         WriterJob::Sync(reply) => {
                             let r = w.sync();
                             let failed = r.is_err();

@@ -4,6 +4,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+use boltwatch::core::model::sparse::column_pairs;
 use boltwatch::core::model::{Csc, Model};
 use boltwatch::core::updating::{Evaluator, ModeMatching, ModeMatchingOptions};
 use boltwatch::io::model::load_model;
@@ -32,32 +33,8 @@ fn export(model: &Path, dir: &Path) -> PathBuf {
 /// model's matrices are exactly symmetric).
 fn same_matrix(a: &Csc, b: &Csc, what: &str) {
     assert_eq!((a.nrows(), a.ncols()), (b.nrows(), b.ncols()), "{what}");
-    let (sa, sb) = (a.symbolic(), b.symbolic());
     for j in 0..a.ncols() {
-        let (ra, va) = (sa.row_idx_of_col_raw(j), a.val_of_col(j));
-        let (rb, vb) = (sb.row_idx_of_col_raw(j), b.val_of_col(j));
-        let (mut p, mut q) = (0, 0);
-        while p < ra.len() || q < rb.len() {
-            let (i, x, y) = match (ra.get(p), rb.get(q)) {
-                (Some(&i), Some(&k)) if i == k => {
-                    p += 1;
-                    q += 1;
-                    (i, va[p - 1], vb[q - 1])
-                }
-                (Some(&i), Some(&k)) if i < k => {
-                    p += 1;
-                    (i, va[p - 1], 0.0)
-                }
-                (Some(&i), None) => {
-                    p += 1;
-                    (i, va[p - 1], 0.0)
-                }
-                (_, Some(&k)) => {
-                    q += 1;
-                    (k, 0.0, vb[q - 1])
-                }
-                (None, None) => unreachable!(),
-            };
+        for (i, x, y) in column_pairs(a, b, j) {
             assert!(
                 x == y,
                 "{what}: entry ({i}, {j}) is {x:e} in the model, {y:e} imported"

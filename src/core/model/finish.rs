@@ -1,7 +1,7 @@
 //! What every assembly (frame or solid) ends with: the checks shared by both and the
 //! [`Model`] from its matrices.
 
-use super::sparse::{Csc, UnionPattern, csc_from_triplets};
+use super::sparse::{Csc, UnionPattern, csc_from_lower};
 use super::spec::BayesSpec;
 use super::{Channel, Connection, Model, ModelError, Parameter};
 
@@ -46,15 +46,7 @@ fn symmetric_from_lower(a: Csc) -> Csc {
                 .map(move |(&i, &v)| (i, j, v))
         })
         .collect();
-    csc_from_triplets(
-        n,
-        lower.iter().copied().chain(
-            lower
-                .iter()
-                .filter(|e| e.0 != e.1)
-                .map(|&(i, j, v)| (j, i, v)),
-        ),
-    )
+    csc_from_lower(n, &lower)
 }
 
 /// The common end of every assembly: takes `K0`, the `K_l` and `M` (in that order), checks

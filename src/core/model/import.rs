@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 use serde::Deserialize;
 
 use super::finish::finish;
-use super::sparse::{Csc, csc_from_triplets};
+use super::sparse::{Csc, column_pairs, csc_from_lower, csc_from_triplets};
 use super::spec::BayesSpec;
 use super::{Channel, Connection, Model, ModelError, Parameter, ParameterKind};
 
@@ -455,13 +455,7 @@ pub fn read_matrix_market(path: &Path, n: usize) -> Result<Csc, ImportError> {
         }
         Symmetry::General => symmetric_lower(path, n, &entries)?,
     };
-    let both = lower.iter().copied().chain(
-        lower
-            .iter()
-            .filter(|e| e.0 != e.1)
-            .map(|&(i, j, v)| (j, i, v)),
-    );
-    Ok(csc_from_triplets(n, both))
+    Ok(csc_from_lower(n, &lower))
 }
 
 /// The lower triangle of a `general` file's matrix, checked to be symmetric within
@@ -474,34 +468,9 @@ fn symmetric_lower(
     let a = csc_from_triplets(n, entries.iter().copied());
     let at = csc_from_triplets(n, entries.iter().map(|&(i, j, v)| (j, i, v)));
     let scale = a.val().iter().fold(0.0_f64, |m, v| m.max(v.abs()));
-    let (sa, st) = (a.symbolic(), at.symbolic());
     let mut lower = Vec::with_capacity(entries.len() / 2 + n);
     for j in 0..n {
-        // Merge column j of A and of Aᵀ (rows sorted); a missing entry is zero.
-        let (ra, va) = (sa.row_idx_of_col_raw(j), a.val_of_col(j));
-        let (rt, vt) = (st.row_idx_of_col_raw(j), at.val_of_col(j));
-        let (mut p, mut q) = (0, 0);
-        while p < ra.len() || q < rt.len() {
-            let (i, x, y) = match (ra.get(p), rt.get(q)) {
-                (Some(&ia), Some(&it)) if ia == it => {
-                    p += 1;
-                    q += 1;
-                    (ia, va[p - 1], vt[q - 1])
-                }
-                (Some(&ia), Some(&it)) if ia < it => {
-                    p += 1;
-                    (ia, va[p - 1], 0.0)
-                }
-                (Some(_), Some(&it)) | (None, Some(&it)) => {
-                    q += 1;
-                    (it, 0.0, vt[q - 1])
-                }
-                (Some(&ia), None) => {
-                    p += 1;
-                    (ia, va[p - 1], 0.0)
-                }
-                (None, None) => unreachable!("the loop condition"),
-            };
+        for (i, x, y) in column_pairs(&a, &at, j) {
             if (x - y).abs() > SYMMETRY_TOL * scale {
                 return Err(err(
                     path,

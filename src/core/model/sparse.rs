@@ -93,6 +93,44 @@ pub fn csc_from_triplets(
     SparseColMat::new(symbolic, val)
 }
 
+/// The symmetric `n × n` matrix, both triangles stored, whose lower triangle is `lower`
+/// (entries with row ≥ column).
+pub fn csc_from_lower(n: usize, lower: &[(usize, usize, f64)]) -> Csc {
+    let mirror = lower
+        .iter()
+        .filter(|e| e.0 != e.1)
+        .map(|&(i, j, v)| (j, i, v));
+    csc_from_triplets(n, lower.iter().copied().chain(mirror))
+}
+
+/// Column `j` of `a` and of `b` side by side: every row stored in either, ascending, with
+/// its value in each (zero where it is not stored).
+pub fn column_pairs<'a>(
+    a: &'a Csc,
+    b: &'a Csc,
+    j: usize,
+) -> impl Iterator<Item = (usize, f64, f64)> + 'a {
+    let (ra, va) = (a.symbolic().row_idx_of_col_raw(j), a.val_of_col(j));
+    let (rb, vb) = (b.symbolic().row_idx_of_col_raw(j), b.val_of_col(j));
+    let (mut p, mut q) = (0, 0);
+    std::iter::from_fn(move || {
+        let next = match (ra.get(p), rb.get(q)) {
+            (Some(&i), Some(&k)) if i == k => (i, va[p], vb[q]),
+            (Some(&i), Some(&k)) if i < k => (i, va[p], 0.0),
+            (Some(&i), None) => (i, va[p], 0.0),
+            (_, Some(&k)) => (k, 0.0, vb[q]),
+            (None, None) => return None,
+        };
+        if ra.get(p) == Some(&next.0) {
+            p += 1;
+        }
+        if rb.get(q) == Some(&next.0) {
+            q += 1;
+        }
+        Some(next)
+    })
+}
+
 /// `y += a · A x` for a sparse `A`.
 pub fn spmv_add(a: &Csc, x: &[f64], alpha: f64, y: &mut [f64]) {
     let s = a.symbolic();
