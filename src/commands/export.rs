@@ -112,12 +112,22 @@ pub fn run(args: &ExportArgs) -> Result<()> {
                 if let Some(k) = model.connection_stiffness(l) {
                     e["stiffness"] = json!(k);
                 }
+                if let Some(v) = p.lower {
+                    e["lower"] = json!(v);
+                }
+                if let Some(v) = p.upper {
+                    e["upper"] = json!(v);
+                }
                 e
             }).collect::<Vec<_>>(),
             "bayesian": model.bayesian,
             "channels": model.channels().iter().map(|c| json!({
                 "name": c.name,
                 "dofs": c.dofs.iter().map(|&(i, w)| json!([i, w])).collect::<Vec<_>>(),
+            })).collect::<Vec<_>>(),
+            "locations": model.locations().iter().map(|l| json!({
+                "name": l.name,
+                "dofs": l.dofs,
             })).collect::<Vec<_>>(),
         }),
     )?;

@@ -6,6 +6,10 @@
 //! with the roles of the two matrices exchanged). Reducing with `K` rather than `M` matters
 //! here: the frame's member-end rotations have tiny rotary mass, so `L_M⁻¹ K L_M⁻ᵀ` spans
 //! ~10⁸ and its lowest eigenvectors come out with residuals near 1 (seen on the lab frame).
+//! It also needs only `K` definite: a singular `M` (massless DOFs) gives `μ = 0` for the
+//! infinite eigenvalues, which no solve asks for, and every iterate `K⁻¹MX` lies in
+//! `range(K⁻¹M)`, where `M` is definite and the massless DOFs are those of static
+//! condensation.
 //! The reduction still loses a few digits to the conditioning of `K`, so the wanted modes
 //! plus a few guard modes are refined by one step of block inverse iteration,
 //! `X = K⁻¹ M Φ`, and a Rayleigh–Ritz solve on `span X` (Bathe, *Finite Element
@@ -63,11 +67,10 @@ pub struct DenseEigen {
 }
 
 impl DenseEigen {
-    /// Densifies `M` once; `M` does not depend on θ.
+    /// Densifies `M` once; `M` does not depend on θ. Only `K(θ)` is factorized, so `M`
+    /// may be singular (massless DOFs, [`Model::massless_dofs`]).
     pub fn new(model: &Model) -> Result<Self, ModalError> {
         let m = model.mass_dense();
-        m.llt(Side::Lower)
-            .map_err(|_| ModalError::MassNotPositiveDefinite)?;
         let n = model.n_dof();
         let sturm_symbolic = super::union_symbolic_cholesky(model)?;
         Ok(Self {
@@ -102,9 +105,8 @@ impl EigenSolver for DenseEigen {
         theta: &[f64],
         n_modes: usize,
     ) -> Result<EigenPairs, ModalError> {
-        let n = model.n_dof();
-        check_mode_count(n_modes, n)?;
-        let q = (n_modes + GUARD_MODES).min(n);
+        check_mode_count(n_modes, model.n_finite_modes())?;
+        let q = (n_modes + GUARD_MODES).min(model.n_finite_modes());
         model.stiffness_dense_into(theta, self.k.as_mut());
         let llt: Llt<f64> = self
             .k
@@ -180,7 +182,7 @@ impl EigenSolver for DenseEigen {
             return Ok(None);
         };
         let n = model.n_dof();
-        check_mode_count(n_modes, n)?;
+        check_mode_count(n_modes, model.n_finite_modes())?;
         model.shifted_stiffness_values(theta, 0.0, &mut self.k_values);
         let k_sparse =
             SparseColMatRef::new(model.union_pattern().pattern.symbolic(), &self.k_values);

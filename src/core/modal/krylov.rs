@@ -9,6 +9,8 @@
 //! `(VᵀKV) u = λ u` densely, and restarts from the lowest `q` Ritz vectors (Bathe, *Finite
 //! Element Procedures*, §11.6, for the subspace iteration this generalizes; Saad, *Numerical
 //! Methods for Large Eigenvalue Problems*, 2nd ed., §6.3, for block Krylov projection).
+//! Only `K` is factorized: `M` may be singular (massless DOFs); every basis vector lies in
+//! `range(K⁻¹M)`, on which the `M`-inner product is definite.
 //!
 //! `KV` is never formed by multiplying with `K`: every basis vector is `K⁻¹` of a known
 //! vector, so `K v = M u` follows exactly and is carried through the orthogonalization. A
@@ -474,8 +476,8 @@ impl SparseEigen {
         target: Target,
     ) -> Result<TargetedPairs, ModalError> {
         let n = model.n_dof();
-        check_mode_count(n_modes, n)?;
-        let q = (n_modes + MIN_GUARD.max(n_modes / 2)).min(n);
+        check_mode_count(n_modes, model.n_finite_modes())?;
+        let q = (n_modes + MIN_GUARD.max(n_modes / 2)).min(model.n_finite_modes());
         let order = super::reordered(model)?;
         model.shifted_stiffness_reordered(order, theta, 0.0, &mut self.k_values);
         let b = cold_block(q);

@@ -76,11 +76,11 @@ pub(crate) fn col_slice_mut(a: faer::MatMut<'_, f64>, j: usize) -> &mut [f64] {
 /// Failures of the modal layer.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum ModalError {
-    #[error("mass matrix is not positive definite (Cholesky failed)")]
-    MassNotPositiveDefinite,
     #[error("eigen solver failed: {0}")]
     EigenFailed(String),
-    #[error("asked for {asked} modes but the model has {available} DOFs")]
+    #[error(
+        "asked for {asked} modes but the model has {available} (one per DOF that carries mass)"
+    )]
     TooManyModes { asked: usize, available: usize },
     #[error(
         "non-positive or non-finite eigenvalue λ_{index} = {value}: K(θ) is not positive definite"

@@ -230,6 +230,8 @@ pub(super) fn assemble(spec: &ModelSpec) -> Result<Model, ModelError> {
         parameters.push(Parameter {
             name: p.name.clone(),
             nominal,
+            lower: None,
+            upper: None,
             kind,
         });
     }

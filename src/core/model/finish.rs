@@ -49,9 +49,8 @@ fn symmetric_from_lower(a: Csc) -> Csc {
     csc_from_lower(n, &lower)
 }
 
-/// The common end of every assembly: takes `K0`, the `K_l` and `M` (in that order), checks
-/// that every DOF has mass (a DOF without makes `M` singular; name it rather than fail in
-/// the eigen solver) and forms the union pattern.
+/// The common end of every assembly: takes `K0`, the `K_l` and `M` (in that order), finds
+/// the DOFs without mass ([`massless_dofs`]) and forms the union pattern.
 pub(super) fn finish(
     name: &str,
     labels: Vec<String>,
@@ -75,28 +74,13 @@ pub(super) fn finish(
     // the products (both) would see differently, and which moves the lowest frequencies of
     // the ill-conditioned solid frame by ~1e-9. The lower triangle is kept.
     let mats: Vec<Csc> = mats.into_iter().map(symmetric_from_lower).collect();
-    let m = mats[p + 1].clone();
-    let mut diag = vec![0.0; n];
-    {
-        let s = m.symbolic();
-        for (j, d) in diag.iter_mut().enumerate() {
-            for (&i, &v) in s.row_idx_of_col_raw(j).iter().zip(m.val_of_col(j)) {
-                if i == j {
-                    *d = v;
-                }
-            }
-        }
-    }
-    if let Some(j) = diag.iter().position(|&v| v <= 0.0) {
-        return Err(ModelError::MasslessDof {
-            dof: labels[j].clone(),
-        });
-    }
+    let massless = massless_dofs(&mats, &parameters, &labels)?;
     let refs: Vec<_> = mats.iter().collect();
     let union = UnionPattern::new(n, &refs);
     let mut it = mats.into_iter();
     let k0 = it.next().expect("K0 is always assembled");
     let k_params: Vec<_> = it.by_ref().take(p).collect();
+    let m = it.next().expect("M is always assembled");
     Ok(Model {
         name: name.to_string(),
         dof_labels: labels,
@@ -107,7 +91,87 @@ pub(super) fn finish(
         connections,
         channels,
         union,
+        massless,
+        locations: Vec::new(),
         reordered: Default::default(),
         bayesian,
     })
+}
+
+/// Diagonal of a symmetric matrix.
+fn diagonal(a: &Csc) -> Vec<f64> {
+    let s = a.symbolic();
+    (0..a.ncols())
+        .map(|j| {
+            s.row_idx_of_col_raw(j)
+                .binary_search(&j)
+                .map_or(0.0, |k| a.val_of_col(j)[k])
+        })
+        .collect()
+}
+
+/// The DOFs that carry no mass (a zero diagonal of `M`; lumped-mass models leave rotations
+/// and interior nodes without), ascending. They make `M` singular, which the solvers
+/// accept: they factorize only `K(θ)` and work in `range(K⁻¹M)`, where the massless DOFs
+/// follow the others statically (exactly what static condensation gives). Refused, naming
+/// the entry: a negative diagonal mass, a massless DOF coupled to another through `M`
+/// (either makes `M` indefinite), a massless DOF without stiffness at nominal θ (`K(θ0)`
+/// singular there), a model whose every DOF is massless.
+fn massless_dofs(
+    mats: &[Csc],
+    parameters: &[Parameter],
+    labels: &[String],
+) -> Result<Vec<usize>, ModelError> {
+    let p = parameters.len();
+    let m = &mats[p + 1];
+    let diag = diagonal(m);
+    if let Some(j) = diag.iter().position(|v| v.is_nan() || *v < 0.0) {
+        return Err(ModelError::Mass {
+            dof: labels[j].clone(),
+            reason: format!(
+                "diagonal entry {} is negative or not a number, so M has a negative eigenvalue",
+                diag[j]
+            ),
+        });
+    }
+    let massless: Vec<usize> = (0..diag.len()).filter(|&j| diag[j] == 0.0).collect();
+    if massless.is_empty() {
+        return Ok(massless);
+    }
+    if massless.len() == diag.len() {
+        return Err(ModelError::Invalid {
+            field: "M".into(),
+            reason: "no DOF carries mass".into(),
+        });
+    }
+    let s = m.symbolic();
+    for &j in &massless {
+        if let Some((&i, &v)) = s
+            .row_idx_of_col_raw(j)
+            .iter()
+            .zip(m.val_of_col(j))
+            .find(|&(_, &v)| v != 0.0)
+        {
+            return Err(ModelError::Mass {
+                dof: labels[j].clone(),
+                reason: format!(
+                    "no diagonal mass but M couples it to `{}` ({v}), so M has a negative \
+                     eigenvalue",
+                    labels[i]
+                ),
+            });
+        }
+    }
+    let mut k_diag = diagonal(&mats[0]);
+    for (l, par) in parameters.iter().enumerate() {
+        for (d, v) in k_diag.iter_mut().zip(diagonal(&mats[l + 1])) {
+            *d += par.nominal * v;
+        }
+    }
+    if let Some(&j) = massless.iter().find(|&&j| k_diag[j].is_nan() || k_diag[j] <= 0.0) {
+        return Err(ModelError::MasslessSingular {
+            dof: labels[j].clone(),
+        });
+    }
+    Ok(massless)
 }

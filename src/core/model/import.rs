@@ -17,7 +17,7 @@ use serde::Deserialize;
 use super::finish::finish;
 use super::sparse::{Csc, column_pairs, csc_from_lower, csc_from_triplets};
 use super::spec::BayesSpec;
-use super::{Channel, Connection, Model, ModelError, Parameter, ParameterKind};
+use super::{Channel, Connection, Location, Model, ModelError, Parameter, ParameterKind};
 
 /// The schema name in `model.json`.
 pub const MATRICES_SCHEMA: &str = "boltwatch.matrices.v1";
@@ -57,8 +57,9 @@ struct MatricesFile {
     #[serde(default)]
     #[allow(dead_code)]
     files: Vec<String>,
+    /// `K0`; `null`: none (all of `K` is in the `K_l`).
     #[serde(default = "default_k0")]
-    k0: String,
+    k0: Option<String>,
     #[serde(default = "default_m")]
     mass: String,
     #[serde(default = "default_dofs")]
@@ -66,13 +67,20 @@ struct MatricesFile {
     parameters: Vec<ParameterEntry>,
     #[serde(default)]
     channels: Vec<ChannelEntry>,
+    /// Named places (a floor node's translations, a bearing): what `diagnose` and
+    /// `simulate --inject` can name.
+    #[serde(default)]
+    locations: Vec<LocationEntry>,
     /// Defaults of the Bayesian MAP, as a model file's `[bayesian]`.
     #[serde(default)]
     bayesian: BayesSpec,
 }
 
-fn default_k0() -> String {
-    "K0.mtx".into()
+fn default_k0() -> Option<String> {
+    Some("K0.mtx".into())
+}
+fn one() -> f64 {
+    1.0
 }
 fn default_m() -> String {
     "M.mtx".into()
@@ -85,7 +93,14 @@ fn default_dofs() -> String {
 #[serde(deny_unknown_fields)]
 struct ParameterEntry {
     name: String,
+    /// θ_l of the model as given (default 1).
+    #[serde(default = "one")]
     nominal: f64,
+    /// Bounds of θ_l that `update` (mode matching) and the tracker keep it within.
+    #[serde(default)]
+    lower: Option<f64>,
+    #[serde(default)]
+    upper: Option<f64>,
     file: String,
     /// What `K_l` is: `connection` (bolted connections: loosening alerts watch it),
     /// `modulus`, `spring` or `matrix` (the default: anything else).
@@ -105,6 +120,14 @@ enum Kind {
     Spring,
     #[default]
     Matrix,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct LocationEntry {
+    name: String,
+    /// DOF indices (0-based).
+    dofs: Vec<usize>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -171,6 +194,24 @@ pub fn read_matrices(json: &Path) -> Result<Model, ImportError> {
                 ),
             ));
         }
+        let lower_ok = p
+            .lower
+            .is_none_or(|v| v.is_finite() && v > 0.0 && v <= p.nominal);
+        let upper_ok = p.upper.is_none_or(|v| v.is_finite() && v >= p.nominal);
+        let apart = !matches!((p.lower, p.upper), (Some(a), Some(b)) if a >= b);
+        if !(lower_ok && upper_ok && apart) {
+            return Err(err(
+                json,
+                format!(
+                    "parameters.{}: need 0 < lower ≤ nominal ≤ upper < ∞ and lower < upper, got lower \
+                     {}, nominal {}, upper {}",
+                    p.name,
+                    p.lower.map_or("none".into(), |v| v.to_string()),
+                    p.nominal,
+                    p.upper.map_or("none".into(), |v| v.to_string()),
+                ),
+            ));
+        }
     }
     if file.parameters.is_empty() {
         return Err(err(json, "parameters: none (at least one K_l is needed)"));
@@ -205,10 +246,47 @@ pub fn read_matrices(json: &Path) -> Result<Model, ImportError> {
         }
     }
 
+    let mut location_names = HashSet::new();
+    for (k, loc) in file.locations.iter().enumerate() {
+        if loc.name.trim().is_empty() {
+            return Err(err(json, format!("locations[{k}].name: empty")));
+        }
+        if !location_names.insert(loc.name.as_str()) {
+            return Err(err(
+                json,
+                format!("locations[{k}].name: `{}` is defined twice", loc.name),
+            ));
+        }
+        if loc.dofs.is_empty() {
+            return Err(err(json, format!("locations.{}.dofs: empty", loc.name)));
+        }
+        let mut seen = HashSet::new();
+        for &i in &loc.dofs {
+            if i >= n {
+                return Err(err(
+                    json,
+                    format!(
+                        "locations.{}.dofs: DOF {i} is out of range (n_dof = {n}, 0-based)",
+                        loc.name
+                    ),
+                ));
+            }
+            if !seen.insert(i) {
+                return Err(err(
+                    json,
+                    format!("locations.{}.dofs: DOF {i} is given twice", loc.name),
+                ));
+            }
+        }
+    }
+
     let dofs_path = at(&file.dofs);
     let labels = read_labels(&dofs_path, n)?;
     let mut mats = Vec::with_capacity(file.parameters.len() + 2);
-    mats.push(read_matrix_market(&at(&file.k0), n)?);
+    mats.push(match &file.k0 {
+        Some(k0) => read_matrix_market(&at(k0), n)?,
+        None => csc_from_lower(n, &[]),
+    });
     for p in &file.parameters {
         mats.push(read_matrix_market(&at(&p.file), n)?);
     }
@@ -224,6 +302,8 @@ pub fn read_matrices(json: &Path) -> Result<Model, ImportError> {
         .map(|(l, p)| Parameter {
             name: p.name.clone(),
             nominal: p.nominal,
+            lower: p.lower,
+            upper: p.upper,
             kind: match p.kind {
                 Kind::Connection => ParameterKind::Connections(
                     p.stiffness
@@ -264,9 +344,116 @@ pub fn read_matrices(json: &Path) -> Result<Model, ImportError> {
         file.bayesian,
     )
     .map_err(|e| match e {
-        ModelError::MasslessDof { .. } => err(&mass_path, e.to_string()),
+        ModelError::Mass { .. } => err(&mass_path, e.to_string()),
         _ => err(json, e.to_string()),
     })
+    .and_then(|mut model| {
+        check_definite(&model, json, &mass_path)?;
+        model.locations = file
+            .locations
+            .into_iter()
+            .map(|l| Location {
+                name: l.name,
+                dofs: l.dofs,
+            })
+            .collect();
+        Ok(model)
+    })
+}
+
+/// What the solvers need of an imported model and only a factorization shows: `M`
+/// positive definite on the DOFs that carry mass, and `K(θ0)` (nominal θ) positive
+/// definite. A failure names the DOF at which the Cholesky factorization broke down and
+/// says why: `K(θ0)` singular on the massless DOFs (a part that neither mass nor stiffness
+/// holds), singular (a rigid-body motion or mechanism: the structure must be supported), or
+/// not positive semi-definite. Both factorizations reuse the model's reordered pattern,
+/// which the solvers need anyway.
+fn check_definite(model: &Model, json: &Path, mass_path: &Path) -> Result<(), ImportError> {
+    let order = model
+        .reordered()
+        .map_err(|e| err(json, format!("cannot analyse the matrices' pattern: {e:?}")))?;
+    let labels = model.dof_labels();
+    let massless = model.massless_dofs();
+    let diagonal_of = |j: usize| {
+        order
+            .diagonal_position(j)
+            .expect("a massless DOF has stiffness on its diagonal (checked by finish)")
+    };
+    // M plus the identity on the massless DOFs, whose rows and columns of M are zero
+    // (checked by finish): positive definite exactly when M is on the others.
+    let mut values = vec![0.0; order.len()];
+    model.subtract_mass_reordered(order, -1.0, &mut values);
+    for &j in massless {
+        values[diagonal_of(j)] = 1.0;
+    }
+    if let Some(j) = order.cholesky_breakdown(&values) {
+        return Err(err(
+            mass_path,
+            format!(
+                "M is not positive definite on the DOFs that carry mass (a negative or zero \
+                 eigenvalue): its factorization broke down at DOF `{}`",
+                labels[j]
+            ),
+        ));
+    }
+    model.shifted_stiffness_reordered(order, &model.nominal_theta(), 0.0, &mut values);
+    let Some(at) = order.cholesky_breakdown(&values) else {
+        return Ok(());
+    };
+    if !massless.is_empty() {
+        // K(θ0) on the massless DOFs alone: the entries that touch a DOF with mass zeroed,
+        // a unit diagonal there.
+        let mut has_mass = vec![true; model.n_dof()];
+        massless.iter().for_each(|&j| has_mass[j] = false);
+        let mut block = values.clone();
+        let (ptr, rows) = (order.lower.col_ptr(), order.lower.row_idx());
+        for c in 0..model.n_dof() {
+            for k in ptr[c]..ptr[c + 1] {
+                let (i, j) = (order.fwd[rows[k]], order.fwd[c]);
+                if has_mass[i] || has_mass[j] {
+                    block[k] = if i == j { 1.0 } else { 0.0 };
+                }
+            }
+        }
+        if let Some(j) = order.cholesky_breakdown(&block) {
+            return Err(err(
+                json,
+                format!(
+                    "K(θ0) at nominal θ is singular on the DOFs without mass: its factorization \
+                     on them broke down at DOF `{}` (a part that neither mass nor stiffness \
+                     holds: fix it, or give it stiffness or mass)",
+                    labels[j]
+                ),
+            ));
+        }
+    }
+    // Singular (to 1e-9 of the largest diagonal entry) or indefinite?
+    let largest = (0..model.n_dof())
+        .filter_map(|j| order.diagonal_position(j).map(|k| values[k]))
+        .fold(0.0_f64, f64::max);
+    for j in 0..model.n_dof() {
+        if let Some(k) = order.diagonal_position(j) {
+            values[k] += 1e-9 * largest;
+        }
+    }
+    let (what, why) = if order.cholesky_breakdown(&values).is_none() {
+        (
+            "is singular (to 1e-9 of its largest diagonal entry)",
+            "a rigid-body motion or a mechanism: boltwatch needs a supported structure",
+        )
+    } else {
+        (
+            "is not positive semi-definite",
+            "it has a negative eigenvalue",
+        )
+    };
+    Err(err(
+        json,
+        format!(
+            "K(θ0) at nominal θ {what}: its factorization broke down at DOF `{}` ({why})",
+            labels[at]
+        ),
+    ))
 }
 
 /// `dofs.txt`: exactly `n` non-empty, distinct labels.

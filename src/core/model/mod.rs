@@ -40,6 +40,10 @@ pub enum ParameterKind {
 pub struct Parameter {
     pub name: String,
     pub nominal: f64,
+    /// Bounds of θ_l that mode matching keeps it within (an imported model's `lower` and
+    /// `upper`), besides `--bounds`.
+    pub lower: Option<f64>,
+    pub upper: Option<f64>,
     pub kind: ParameterKind,
 }
 
@@ -52,6 +56,14 @@ pub struct Connection {
     pub k: f64,
     /// The parameter that scales it, if any.
     pub parameter: Option<usize>,
+}
+
+/// A named place of an imported model: DOFs an effect of `diagnose` or `simulate --inject`
+/// can act on (added mass on each, a grounded spring on each).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Location {
+    pub name: String,
+    pub dofs: Vec<usize>,
 }
 
 /// A named sensor channel: `y = Σ c_i q_i` over the model DOFs.
@@ -83,8 +95,13 @@ pub enum ModelError {
     },
     #[error("{field}: {reason}")]
     Invalid { field: String, reason: String },
-    #[error("DOF `{dof}` has no mass: M is singular (add a mass or fix the DOF)")]
-    MasslessDof { dof: String },
+    #[error("M, DOF `{dof}`: {reason}")]
+    Mass { dof: String, reason: String },
+    #[error(
+        "DOF `{dof}` has no mass and K(θ0) is singular on it (no stiffness at nominal θ): fix \
+         the DOF, or give it stiffness or mass"
+    )]
+    MasslessSingular { dof: String },
 }
 
 /// The shipped lab-frame model, for unit tests.
@@ -108,6 +125,10 @@ pub struct Model {
     channels: Vec<Channel>,
     /// Union of the patterns of K0, every K_l and M (positions 0, 1..=p, p+1 in `maps`).
     union: UnionPattern,
+    /// DOFs without mass, ascending (see `finish::massless_dofs`).
+    massless: Vec<usize>,
+    /// Named places (imported models).
+    locations: Vec<Location>,
     /// The union reordered for factorization, computed on first use ([`Model::reordered`]).
     reordered: std::sync::OnceLock<std::sync::Arc<Reordered>>,
     /// The model file's defaults for the Bayesian MAP.
@@ -134,6 +155,20 @@ impl Model {
 
     pub fn n_dof(&self) -> usize {
         self.dof_labels.len()
+    }
+    /// DOFs that carry no mass, ascending: `M` is singular on them and the model has
+    /// [`Model::n_finite_modes`] modes.
+    pub fn massless_dofs(&self) -> &[usize] {
+        &self.massless
+    }
+    /// Modes of finite frequency: one per DOF that carries mass.
+    pub fn n_finite_modes(&self) -> usize {
+        self.n_dof() - self.massless.len()
+    }
+    /// Named places (an imported model's `locations`; none for the TOML models, whose
+    /// effects name joints and members).
+    pub fn locations(&self) -> &[Location] {
+        &self.locations
     }
     pub fn n_params(&self) -> usize {
         self.parameters.len()

@@ -384,6 +384,8 @@ pub(super) fn assemble(
         .map(|(l, name)| Parameter {
             name: (*name).to_string(),
             nominal: 1.0,
+            lower: None,
+            upper: None,
             kind: ParameterKind::Connections(conn_of_param[l].clone()),
         })
         .collect();

@@ -433,6 +433,49 @@ impl Reordered {
         })
     }
 
+    /// Position in the lower triangle's values of the diagonal entry of DOF `old`, if the
+    /// pattern has one (rows are sorted, so it is its column's first).
+    pub fn diagonal_position(&self, old: usize) -> Option<usize> {
+        let j = self.inv[old];
+        let start = self.lower.col_ptr()[j];
+        (self.lower.col_ptr()[j + 1] > start && self.lower.row_idx()[start] == j).then_some(start)
+    }
+
+    /// Whether the matrix with these lower-triangle values is positive definite: `None`
+    /// when its Cholesky factorization succeeds, else the DOF (original numbering) at whose
+    /// pivot it broke down. Allocates its own scratch: for load-time checks.
+    pub fn cholesky_breakdown(&self, values: &[f64]) -> Option<usize> {
+        use faer::dyn_stack::{MemBuffer, MemStack};
+        use faer::linalg::cholesky::llt::factor::LltRegularization;
+        use faer::sparse::linalg::cholesky::SymbolicCholeskyRaw;
+        let mut mem = MemBuffer::new(
+            self.symbolic
+                .factorize_numeric_llt_scratch::<f64>(faer::Par::Seq, Default::default()),
+        );
+        let mut l = vec![0.0; self.symbolic.len_val()];
+        let a = faer::sparse::SparseColMatRef::new(self.lower.as_ref(), values);
+        match self.symbolic.factorize_numeric_llt(
+            &mut l,
+            a,
+            Side::Lower,
+            LltRegularization::default(),
+            faer::Par::Seq,
+            MemStack::new(&mut mem),
+            Default::default(),
+        ) {
+            Ok(_) => None,
+            Err(faer::linalg::cholesky::llt::factor::LltError::NonPositivePivot { index }) => {
+                // faer 0.24 reports the simplicial factorization's pivot one-based and the
+                // supernodal one's zero-based.
+                let new = match self.symbolic.raw() {
+                    SymbolicCholeskyRaw::Simplicial(_) => index.saturating_sub(1),
+                    SymbolicCholeskyRaw::Supernodal(_) => index,
+                };
+                Some(self.fwd[new.min(self.fwd.len() - 1)])
+            }
+        }
+    }
+
     /// Number of stored values of the lower triangle.
     pub fn len(&self) -> usize {
         self.lower.row_idx().len()

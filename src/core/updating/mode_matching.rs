@@ -65,7 +65,9 @@ pub struct ModeMatchingOptions {
     /// parameter the data cannot pin down (a connection already far stiffer than what the
     /// measured modes load) otherwise runs off towards 0 or ∞ while ε barely changes, and
     /// the fit stalls there; bounded, it stops at the bound and the others converge
-    /// ([`ModeMatchingResult::at_bound`] names it). `None`: unbounded (θ > 0 only).
+    /// ([`ModeMatchingResult::at_bound`] names it). `None`: unbounded (θ > 0 only). A
+    /// parameter's own `lower` and `upper` ([`crate::core::model::Parameter`]) hold as
+    /// well, whichever is tighter.
     pub bounds: Option<(f64, f64)>,
 }
 
@@ -247,9 +249,15 @@ impl ModeMatching {
         let (u_lo, u_hi): (Vec<f64>, Vec<f64>) = model
             .parameters()
             .iter()
-            .map(|par| match opts.bounds {
-                Some((lo, hi)) => ((lo * par.nominal).ln(), (hi * par.nominal).ln()),
-                None => (f64::NEG_INFINITY, f64::INFINITY),
+            .map(|par| {
+                let (lo, hi) = match opts.bounds {
+                    Some((lo, hi)) => (lo * par.nominal, hi * par.nominal),
+                    None => (0.0, f64::INFINITY),
+                };
+                (
+                    par.lower.map_or(lo, |v| v.max(lo)).ln(),
+                    par.upper.map_or(hi, |v| v.min(hi)).ln(),
+                )
             })
             .unzip();
         let theta0: Vec<f64> = (0..p)
