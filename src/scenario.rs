@@ -280,6 +280,7 @@ impl Scenario {
                         frequency_cov: positive(self.noise.frequency_cov),
                         shape: Some(m.shape.iter().map(|&v| Some(v)).collect()),
                         shape_nsd: positive(self.noise.shape_nsd),
+                        shape_std: None,
                     })
                     .collect(),
                 temperature_c: Some((temperature * 100.0).round() / 100.0),

@@ -104,6 +104,7 @@ pub fn run(args: &SimulateArgs) -> Result<()> {
                 frequency_cov: positive(args.freq_cov),
                 shape: Some(m.shape.iter().map(|&v| Some(v)).collect()),
                 shape_nsd: positive(args.shape_nsd),
+                shape_std: None,
             })
             .collect(),
         temperature_c: None,

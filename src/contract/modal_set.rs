@@ -49,7 +49,13 @@ const TOP_FIELDS: &[&str] = &[
 ];
 
 /// Fields of one mode.
-const MODE_FIELDS: &[&str] = &["frequency_hz", "frequency_cov", "shape", "shape_nsd"];
+const MODE_FIELDS: &[&str] = &[
+    "frequency_hz",
+    "frequency_cov",
+    "shape",
+    "shape_nsd",
+    "shape_std",
+];
 
 /// One measured modal set, validated.
 #[derive(Debug, Clone, PartialEq)]
@@ -81,6 +87,10 @@ pub struct MeasuredMode {
     pub shape: Option<Vec<Option<f64>>>,
     /// Normalized standard deviation of the shape (> 0); only on modes with a shape.
     pub shape_nsd: Option<f64>,
+    /// Absolute standard deviation of each shape entry (≥ 0, in the scale of `shape`),
+    /// `None` exactly where the shape entry is; used instead of `shape_nsd` when present
+    /// (entries of ~0 std are floored, [`crate::core::updating::data::floored_shape_std`]).
+    pub shape_std: Option<Vec<Option<f64>>>,
 }
 
 /// Why a modal set was rejected: the offending field (a JSON path such as `modes[2].shape[5]`) and the reason.
@@ -242,7 +252,9 @@ fn format_time(t: &DateTime<Utc>) -> String {
 /// - `modes[i].frequency_hz`: ≤ 0, or below the previous mode's frequency by more than
 ///   [`FREQUENCY_ORDER_TOLERANCE`] (relative);
 /// - `modes[i].frequency_cov`, `modes[i].shape_nsd`: ≤ 0, or present on some modes (with a
-///   shape, for `shape_nsd`) but not others; `shape_nsd` on a mode without a shape;
+///   shape, for `shape_nsd`) but not others; `shape_nsd` on a mode without a shape (a mode
+///   with `shape_std` counts as one with `shape_nsd`);
+/// - `modes[i].shape_std`: see `shape_std` (the function);
 /// - `modes[i].shape`: empty, all null, or not as long as `channels`.
 ///
 /// `null` is accepted only as a shape entry: an optional field is either present with a
@@ -499,13 +511,84 @@ fn parse_mode(i: usize, v: &Value, n_channels: usize) -> Result<MeasuredMode, Re
     if shape_nsd.is_some() && shape.is_none() {
         return Err(reject(nsd_path, "present on a mode without a shape"));
     }
+    let shape_std = match obj.get("shape_std") {
+        None => None,
+        Some(v) => Some(shape_std(v, shape.as_deref(), &format!("{path}.shape_std"))?),
+    };
 
     Ok(MeasuredMode {
         frequency_hz,
         frequency_cov,
         shape,
         shape_nsd,
+        shape_std,
     })
+}
+
+/// Rule: `shape_std` belongs to a mode with a shape, has one entry per shape entry, `null`
+/// exactly where the shape is, numbers finite and ≥ 0, and at least one > 0 (a zero is the
+/// reference entry of a normalized shape, floored later); the median of the positive ones
+/// is at least [`UNCERTAINTY_FLOOR`] times the shape's RMS (below it the weights lose
+/// their meaning, as for `shape_nsd`).
+fn shape_std(
+    v: &Value,
+    shape: Option<&[Option<f64>]>,
+    path: &str,
+) -> Result<Vec<Option<f64>>, Rejection> {
+    let Some(shape) = shape else {
+        return Err(reject(path, "present on a mode without a shape"));
+    };
+    let Value::Array(entries) = v else {
+        return Err(reject(
+            path,
+            format!("expected an array, got {}", kind(v)),
+        ));
+    };
+    if entries.len() != shape.len() {
+        return Err(reject(
+            path,
+            format!(
+                "has {} entries but the shape has {}",
+                entries.len(),
+                shape.len()
+            ),
+        ));
+    }
+    let mut out = Vec::with_capacity(entries.len());
+    for (k, (e, s)) in entries.iter().zip(shape).enumerate() {
+        let field = format!("{path}[{k}]");
+        out.push(match (e, s) {
+            (Value::Null, None) => None,
+            (Value::Null, Some(_)) => {
+                return Err(reject(field, "null where the shape entry is a number"));
+            }
+            (_, None) => {
+                return Err(reject(field, "a number where the shape entry is null"));
+            }
+            (e, Some(_)) => {
+                let x = number(e, &field)?;
+                if x < 0.0 {
+                    return Err(reject(field, format!("{x} is negative")));
+                }
+                Some(x)
+            }
+        });
+    }
+    let Some(median) = crate::core::updating::data::positive_median(out.iter().flatten()) else {
+        return Err(reject(path, "every entry is 0 (at least one must be > 0)"));
+    };
+    let measured: Vec<f64> = shape.iter().flatten().copied().collect();
+    let rms = (measured.iter().map(|x| x * x).sum::<f64>() / measured.len() as f64).sqrt();
+    if median < UNCERTAINTY_FLOOR * rms {
+        return Err(reject(
+            path,
+            format!(
+                "the median of its positive entries, {median:e}, is below {UNCERTAINTY_FLOOR:e} \
+                 times the shape's RMS {rms:e} (the weights of (28) would be meaningless)"
+            ),
+        ));
+    }
+    Ok(out)
 }
 
 /// Rule: a shape has a direction that can be normalized: not all zero, and its norm and
@@ -582,9 +665,15 @@ fn check_uncertainty_consistency(modes: &[MeasuredMode]) -> Result<(), Rejection
     }
     let mut shaped = modes.iter().enumerate().filter(|(_, m)| m.shape.is_some());
     if let Some((first, m0)) = shaped.next() {
-        let has = m0.shape_nsd.is_some();
-        if let Some((i, _)) = shaped.find(|(_, m)| m.shape_nsd.is_some() != has) {
-            return Err(mixed(i, "shape_nsd", first, has));
+        let has = m0.has_shape_uncertainty();
+        if let Some((i, m)) = shaped.find(|(_, m)| m.has_shape_uncertainty() != has) {
+            // A mode's shape uncertainty is its shape_nsd or its shape_std.
+            let name = if m.shape_nsd.is_none() && m.shape_std.is_some() {
+                "shape_std"
+            } else {
+                "shape_nsd"
+            };
+            return Err(mixed(i, name, first, has));
         }
     }
     Ok(())
@@ -622,6 +711,13 @@ impl ModalSet {
                 if let Some(nsd) = m.shape_nsd {
                     mode.insert("shape_nsd".into(), nsd.into());
                 }
+                if let Some(std) = &m.shape_std {
+                    let entries = std
+                        .iter()
+                        .map(|e| e.map_or(Value::Null, Value::from))
+                        .collect();
+                    mode.insert("shape_std".into(), Value::Array(entries));
+                }
                 Value::Object(mode)
             })
             .collect();
@@ -635,7 +731,7 @@ impl ModalSet {
         Value::Object(obj)
     }
 
-    /// True when every mode carries `frequency_cov` and every mode with a shape carries `shape_nsd` (weighting by the measurement covariance); false when none does.
+    /// True when every mode carries `frequency_cov` and every mode with a shape carries `shape_nsd` or `shape_std` (weighting by the measurement covariance); false when none does.
     ///
     /// Also false for a set without modes, and for a set whose frequencies carry
     /// uncertainties but whose shapes do not (the covariance weighting needs both).
@@ -644,6 +740,13 @@ impl ModalSet {
             && self
                 .modes
                 .iter()
-                .all(|m| m.frequency_cov.is_some() && (m.shape.is_none() || m.shape_nsd.is_some()))
+                .all(|m| m.frequency_cov.is_some() && (m.shape.is_none() || m.has_shape_uncertainty()))
+    }
+}
+
+impl MeasuredMode {
+    /// Whether the shape's uncertainty is given, by `shape_nsd` or `shape_std`.
+    pub fn has_shape_uncertainty(&self) -> bool {
+        self.shape_nsd.is_some() || self.shape_std.is_some()
     }
 }

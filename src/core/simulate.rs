@@ -101,6 +101,7 @@ pub fn simulated_measured_data(
             frequency_cov: Some(stated.frequency_cov),
             shape: Some(m.shape.iter().copied().enumerate().collect()),
             shape_nsd: Some(stated.shape_nsd),
+            shape_std: None,
         })
         .collect();
     Ok(MeasuredData::new(&raw, 1.0))

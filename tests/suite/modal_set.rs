@@ -92,6 +92,7 @@ fn full_set_parses_to_expected_values() {
             frequency_cov: Some(0.01),
             shape: Some(vec![Some(0.12), None]),
             shape_nsd: Some(0.05),
+            shape_std: None,
         }
     );
     assert_eq!(set.modes[2].shape, None);
@@ -120,12 +121,14 @@ fn round_trip_keeps_sub_seconds_and_awkward_floats() {
                 frequency_cov: None,
                 shape: Some(vec![None, Some(1e-300), Some(-123456.789e10)]),
                 shape_nsd: None,
+                shape_std: None,
             },
             MeasuredMode {
                 frequency_hz: 1.0 / 3.0,
                 frequency_cov: None,
                 shape: None,
                 shape_nsd: None,
+                shape_std: None,
             },
         ],
         temperature_c: None,
@@ -686,4 +689,51 @@ fn rejects_too_many_modes_and_repeated_modes() {
     assert_rejected(parse(&v), "modes", &["more than the 100"]);
     let v = with(|v| v["modes"][1] = v["modes"][0].clone());
     assert_rejected(parse(&v), "modes[1]", &["repeats modes[0]"]);
+}
+
+/// `shape_std` (issue 24): per-entry stds, `null` where the shape is; round trip; each
+/// rule named by field.
+#[test]
+fn shape_std_is_validated_entry_by_entry() {
+    let ok = with(|v| {
+        v["modes"][0]["shape_std"] = json!([0.004, null]);
+        v["modes"][1]["shape_std"] = json!([0.0, 0.03]);
+    });
+    let set = parse(&ok).unwrap();
+    assert_eq!(set.modes[0].shape_std, Some(vec![Some(0.004), None]));
+    assert_eq!(set.to_json(), ok, "to_json writes shape_std back");
+    // Instead of shape_nsd: a set with shape_std only is a set with uncertainties.
+    let only_std = with(|v| {
+        v["modes"][0].as_object_mut().unwrap().remove("shape_nsd");
+        v["modes"][0]["shape_std"] = json!([0.004, null]);
+    });
+    assert!(parse(&only_std).unwrap().has_uncertainties());
+
+    let cases: Vec<(Value, &str, &str)> = vec![
+        (json!([0.004]), "modes[0].shape_std", "has 1 entries but the shape has 2"),
+        (json!([0.004, 0.1]), "modes[0].shape_std[1]", "a number where the shape entry is null"),
+        (json!([null, null]), "modes[0].shape_std[0]", "null where the shape entry is a number"),
+        (json!([-0.1, null]), "modes[0].shape_std[0]", "-0.1 is negative"),
+        (json!([0.0, null]), "modes[0].shape_std", "every entry is 0"),
+        (json!([1e-9, null]), "modes[0].shape_std", "below 1e-6 times the shape's RMS"),
+        (json!(0.1), "modes[0].shape_std", "expected an array"),
+        (json!(["x", null]), "modes[0].shape_std[0]", "expected a number"),
+    ];
+    for (std, field, needle) in cases {
+        let v = with(|v| v["modes"][0]["shape_std"] = std.clone());
+        assert_rejected(parse(&v), field, &[needle]);
+    }
+    let no_shape = with(|v| v["modes"][2]["shape_std"] = json!([0.1]));
+    assert_rejected(parse(&no_shape), "modes[2].shape_std", &["without a shape"]);
+    // Uncertain on one shaped mode, not on another.
+    let mixed = with(|v| {
+        v["modes"][0].as_object_mut().unwrap().remove("shape_nsd");
+        v["modes"][1].as_object_mut().unwrap().remove("shape_nsd");
+        v["modes"][1]["shape_std"] = json!([0.01, 0.03]);
+    });
+    assert_rejected(
+        parse(&mixed),
+        "modes[1].shape_std",
+        &["present on some modes but not others"],
+    );
 }

@@ -11,7 +11,8 @@ pub struct TargetShape {
     /// ψ̂ at those channels.
     pub values: Vec<f64>,
     /// Standard deviation of each entry (the shape block of the diagonal of `Σ_M`):
-    /// `RMS(ψ̂)·S^w` for every entry by (28), or `(N_o‖ψ̂‖²/w_ψ)^{1/2}` under weighting (9).
+    /// `RMS(ψ̂)·S^w` for every entry by (28), the entry's own std when the set gives
+    /// `shape_std` ([`floored_shape_std`]), or `(N_o‖ψ̂‖²/w_ψ)^{1/2}` under weighting (9).
     pub sigma: Vec<f64>,
 }
 
@@ -51,6 +52,42 @@ pub struct RawMode {
     pub frequency_cov: Option<f64>,
     pub shape: Option<Vec<(usize, f64)>>,
     pub shape_nsd: Option<f64>,
+    /// Absolute standard deviation of each entry of `shape` (in its order); used instead
+    /// of `shape_nsd` when given, floored by [`floored_shape_std`].
+    pub shape_std: Option<Vec<f64>>,
+}
+
+/// An entry's std below this fraction of the mode's median std is taken as "about 0"
+/// ([`floored_shape_std`]).
+pub const SHAPE_STD_FLOOR: f64 = 1e-3;
+
+/// The median of the positive values, `None` if there is none.
+pub fn positive_median<'a>(values: impl Iterator<Item = &'a f64>) -> Option<f64> {
+    let mut v: Vec<f64> = values.copied().filter(|x| *x > 0.0).collect();
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    let h = v.len() / 2;
+    Some(if v.len() % 2 == 1 {
+        v[h]
+    } else {
+        0.5 * (v[h - 1] + v[h])
+    })
+}
+
+/// Per-entry shape stds as `Σ_M` (28) uses them: every entry below [`SHAPE_STD_FLOOR`]
+/// times the median of the mode's positive stds is raised to that median. The rule is for
+/// a shape normalized to one reference entry: that entry's std is 0 by construction (the
+/// normalization moved its measurement error into the others), but the model's shape is
+/// fitted to all entries by one scale factor (7), so its residual at the reference entry
+/// is as uncertain as at a typical one; a std of ~0 would make that one residual dominate ε.
+/// Entries with an honest small std (≥ 1/1000 of the median) are kept.
+pub fn floored_shape_std(std: &[f64]) -> Vec<f64> {
+    let median = positive_median(std.iter()).unwrap_or(0.0);
+    std.iter()
+        .map(|&s| if s < SHAPE_STD_FLOOR * median { median } else { s })
+        .collect()
 }
 
 impl MeasuredData {
@@ -59,7 +96,10 @@ impl MeasuredData {
     pub fn new(raw: &[RawMode], w_psi: f64) -> Self {
         let with_cov = raw
             .iter()
-            .all(|m| m.frequency_cov.is_some() && (m.shape.is_none() || m.shape_nsd.is_some()));
+            .all(|m| {
+                m.frequency_cov.is_some()
+                    && (m.shape.is_none() || m.shape_nsd.is_some() || m.shape_std.is_some())
+            });
         let weighting = if with_cov {
             Weighting::Covariance
         } else {
@@ -78,12 +118,15 @@ impl MeasuredData {
                     let values: Vec<f64> = entries.iter().map(|e| e.1).collect();
                     let n_o = values.len() as f64;
                     let sq: f64 = values.iter().map(|v| v * v).sum();
-                    let sigma = match (weighting, m.shape_nsd) {
-                        (Weighting::Covariance, Some(nsd)) => (sq / n_o).sqrt() * nsd,
-                        _ => (n_o * sq / w_psi).sqrt(),
+                    let sigma = match (weighting, &m.shape_std, m.shape_nsd) {
+                        (Weighting::Covariance, Some(std), _) => floored_shape_std(std),
+                        (Weighting::Covariance, None, Some(nsd)) => {
+                            vec![(sq / n_o).sqrt() * nsd; channels.len()]
+                        }
+                        _ => vec![(n_o * sq / w_psi).sqrt(); channels.len()],
                     };
                     TargetShape {
-                        sigma: vec![sigma; channels.len()],
+                        sigma,
                         channels,
                         values,
                     }
@@ -104,5 +147,49 @@ impl MeasuredData {
             .iter()
             .map(|m| 1 + m.shape.as_ref().map_or(0, |s| s.values.len()))
             .sum()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The floor: a zero (the reference entry) and a 1e-4-of-median entry take the median
+    /// of the positive stds; the others are kept, however they compare with the median.
+    #[test]
+    fn shape_std_floor_raises_only_the_near_zero_entries() {
+        let std = [0.0, 0.02, 0.01, 1e-6, 0.04, 3e-5];
+        // Positive: 1e-6, 3e-5, 0.01, 0.02, 0.04 → median 0.01; floor 1e-5.
+        assert_eq!(
+            floored_shape_std(&std),
+            vec![0.01, 0.02, 0.01, 0.01, 0.04, 3e-5]
+        );
+        assert_eq!(positive_median([1.0, 3.0].iter()), Some(2.0));
+        assert_eq!(positive_median([0.0].iter()), None);
+    }
+
+    /// `shape_std` of `RMS(ψ̂)·S` on every entry weighs exactly as `shape_nsd = S`.
+    #[test]
+    fn uniform_shape_std_is_the_scalar_nsd() {
+        let shape = vec![(0, 0.3), (1, -1.0), (2, 0.7)];
+        let rms = ((0.09_f64 + 1.0 + 0.49) / 3.0).sqrt();
+        let mode = |nsd: Option<f64>, std: Option<Vec<f64>>| RawMode {
+            frequency_hz: 5.0,
+            frequency_cov: Some(0.01),
+            shape: Some(shape.clone()),
+            shape_nsd: nsd,
+            shape_std: std,
+        };
+        let a = MeasuredData::new(&[mode(Some(0.05), None)], 1.0);
+        let b = MeasuredData::new(&[mode(None, Some(vec![rms * 0.05; 3]))], 1.0);
+        assert_eq!(a.weighting, Weighting::Covariance);
+        assert_eq!(b.weighting, Weighting::Covariance);
+        let (sa, sb) = (
+            &a.modes[0].shape.as_ref().unwrap().sigma,
+            &b.modes[0].shape.as_ref().unwrap().sigma,
+        );
+        for (x, y) in sa.iter().zip(sb) {
+            assert!((x - y).abs() <= 1e-15 * x, "{x} vs {y}");
+        }
     }
 }
