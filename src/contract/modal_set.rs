@@ -513,7 +513,11 @@ fn parse_mode(i: usize, v: &Value, n_channels: usize) -> Result<MeasuredMode, Re
     }
     let shape_std = match obj.get("shape_std") {
         None => None,
-        Some(v) => Some(shape_std(v, shape.as_deref(), &format!("{path}.shape_std"))?),
+        Some(v) => Some(shape_std(
+            v,
+            shape.as_deref(),
+            &format!("{path}.shape_std"),
+        )?),
     };
 
     Ok(MeasuredMode {
@@ -539,10 +543,7 @@ fn shape_std(
         return Err(reject(path, "present on a mode without a shape"));
     };
     let Value::Array(entries) = v else {
-        return Err(reject(
-            path,
-            format!("expected an array, got {}", kind(v)),
-        ));
+        return Err(reject(path, format!("expected an array, got {}", kind(v))));
     };
     if entries.len() != shape.len() {
         return Err(reject(
@@ -737,10 +738,9 @@ impl ModalSet {
     /// uncertainties but whose shapes do not (the covariance weighting needs both).
     pub fn has_uncertainties(&self) -> bool {
         !self.modes.is_empty()
-            && self
-                .modes
-                .iter()
-                .all(|m| m.frequency_cov.is_some() && (m.shape.is_none() || m.has_shape_uncertainty()))
+            && self.modes.iter().all(|m| {
+                m.frequency_cov.is_some() && (m.shape.is_none() || m.has_shape_uncertainty())
+            })
     }
 }
 

@@ -656,12 +656,11 @@ pub fn measured_data(set: &ModalSet, model: &Model, w_psi: f64) -> MeasuredData 
                     .collect()
             }),
             shape_nsd: m.shape_nsd,
-            shape_std: m.shape.as_ref().zip(m.shape_std.as_ref()).map(|(s, std)| {
-                s.iter()
-                    .zip(std)
-                    .filter_map(|(v, sd)| v.and(*sd))
-                    .collect()
-            }),
+            shape_std: m
+                .shape
+                .as_ref()
+                .zip(m.shape_std.as_ref())
+                .map(|(s, std)| s.iter().zip(std).filter_map(|(v, sd)| v.and(*sd)).collect()),
         })
         .collect();
     MeasuredData::new(&raw, w_psi)

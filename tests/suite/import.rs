@@ -872,3 +872,133 @@ fn parameter_bounds_of_an_imported_model_hold() {
     assert_eq!(b.parameters()[e].upper, Some(1.0));
     assert_eq!(b.locations(), model.locations());
 }
+
+/// Must-show of issue 24: a model built by another program. `tests/python/
+/// independent_model.py` (numpy and scipy, not boltwatch) assembles a 200-DOF cantilever
+/// with five segment stiffnesses as parameters and lumped masses (100 massless rotations),
+/// writes it with `scipy.io.mmwrite`, and simulates 200 noisy modal sets at θ_true (8
+/// modes, 1 % frequency CoV, shapes with per-entry `shape_std` of 1–5 % that differs from
+/// channel to channel). boltwatch's frequencies equal the script's (static condensation,
+/// `scipy.linalg.eigh`) within what rounding the stiffness entries allows (about 1e-9 in
+/// the first mode of this fine beam, 1e-12 and less above); `update` from θ0 = 1 recovers θ_true within 3σ for every
+/// parameter of the first set; over all 200 sets the 95 % intervals θ ± 1.96σ cover θ_true
+/// in 90–98 % of the 1,000 cases (each parameter's own coverage is printed).
+#[test]
+fn a_scipy_built_model_is_updated_with_calibrated_sigma() {
+    const DRAWS: usize = 200;
+    let python = super::common::python_venv(
+        "py-scipy-venv",
+        "import scipy.sparse.linalg, scipy.io",
+        &["scipy==1.14.1"],
+    );
+    let dir = tmp_dir("import-scipy");
+    let script = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/python/independent_model.py"
+    );
+    let out = Command::new(&python)
+        .arg(script)
+        .arg(&dir)
+        .arg(DRAWS.to_string())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let truth: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("truth.json")).unwrap()).unwrap();
+    let theta_true: Vec<f64> = serde_json::from_value(truth["theta"].clone()).unwrap();
+    let json = dir.join("model/model.json");
+    let model = load_model(&json).unwrap();
+    assert_eq!((model.n_dof(), model.n_params()), (200, 5));
+    assert_eq!(model.massless_dofs().len(), 100);
+    for (theta, key) in [
+        (theta_true.clone(), "frequencies_hz"),
+        (vec![1.0; 5], "frequencies_hz_nominal"),
+    ] {
+        let want: Vec<f64> = serde_json::from_value(truth[key].clone()).unwrap();
+        let pairs = boltwatch::core::modal::solver_for(&model)
+            .unwrap()
+            .solve(&model, &theta, want.len())
+            .unwrap();
+        // Rounding the stiffness entries alone (relative ε each) moves λ_q by up to
+        // ε φᵀ|K|φ: a fine beam's K cancels to ~1e-9 of |K| in its first mode, so two
+        // backward-stable solvers agree within that, not to 1e-10.
+        let mut k = faer::Mat::zeros(200, 200);
+        model.stiffness_dense_into(&theta, k.as_mut());
+        for (q, w) in want.iter().enumerate() {
+            let f = pairs.frequency_hz(q);
+            let phi = pairs.phi.col(q);
+            let mut abs_form = 0.0;
+            for j in 0..200 {
+                for i in 0..200 {
+                    abs_form += phi[i].abs() * k[(i, j)].abs() * phi[j].abs();
+                }
+            }
+            let tol = f64::EPSILON * abs_form / pairs.lambda[q];
+            assert!(
+                ((f - w) / w).abs() <= tol.max(1e-12),
+                "{key}, mode {}: {f} Hz, scipy {w} Hz (tolerance {tol:e})",
+                q + 1
+            );
+            if q == 0 {
+                println!(
+                    "{key}, mode 1: relative difference {:e}, tolerance {tol:e}",
+                    (f - w) / w
+                );
+            }
+        }
+    }
+
+    let bin = env!("CARGO_BIN_EXE_boltwatch");
+    let mut covered = [0usize; 5];
+    for k in 0..DRAWS {
+        let result = dir.join(format!("update-{k}.json"));
+        let out = Command::new(bin)
+            .args(["update", "--model"])
+            .arg(&json)
+            .arg("--data")
+            .arg(dir.join(format!("sets/{k}.json")))
+            .arg("-o")
+            .arg(&result)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "set {k}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let doc: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&result).unwrap()).unwrap();
+        assert_eq!(doc["converged"], true, "set {k}");
+        assert_eq!(doc["weighting"], "covariance (8)", "set {k}");
+        for (l, par) in doc["parameters"].as_array().unwrap().iter().enumerate() {
+            let (t, s) = (par["theta"].as_f64().unwrap(), par["std"].as_f64().unwrap());
+            let z = (t - theta_true[l]).abs() / s;
+            if k == 0 {
+                assert!(
+                    z < 3.0,
+                    "set 0, {}: θ = {t} ± {s}, true {}",
+                    par["name"],
+                    theta_true[l]
+                );
+            }
+            if z <= 1.96 {
+                covered[l] += 1;
+            }
+        }
+    }
+    let pooled = covered.iter().sum::<usize>() as f64 / (5 * DRAWS) as f64;
+    println!(
+        "95 % intervals cover θ_true in {:.1} % of {} cases; per parameter {:?} of {DRAWS}",
+        100.0 * pooled,
+        5 * DRAWS,
+        covered
+    );
+    assert!(
+        (0.90..=0.98).contains(&pooled),
+        "coverage {pooled} (per parameter {covered:?} of {DRAWS})"
+    );
+}

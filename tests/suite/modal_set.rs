@@ -710,14 +710,38 @@ fn shape_std_is_validated_entry_by_entry() {
     assert!(parse(&only_std).unwrap().has_uncertainties());
 
     let cases: Vec<(Value, &str, &str)> = vec![
-        (json!([0.004]), "modes[0].shape_std", "has 1 entries but the shape has 2"),
-        (json!([0.004, 0.1]), "modes[0].shape_std[1]", "a number where the shape entry is null"),
-        (json!([null, null]), "modes[0].shape_std[0]", "null where the shape entry is a number"),
-        (json!([-0.1, null]), "modes[0].shape_std[0]", "-0.1 is negative"),
+        (
+            json!([0.004]),
+            "modes[0].shape_std",
+            "has 1 entries but the shape has 2",
+        ),
+        (
+            json!([0.004, 0.1]),
+            "modes[0].shape_std[1]",
+            "a number where the shape entry is null",
+        ),
+        (
+            json!([null, null]),
+            "modes[0].shape_std[0]",
+            "null where the shape entry is a number",
+        ),
+        (
+            json!([-0.1, null]),
+            "modes[0].shape_std[0]",
+            "-0.1 is negative",
+        ),
         (json!([0.0, null]), "modes[0].shape_std", "every entry is 0"),
-        (json!([1e-9, null]), "modes[0].shape_std", "below 1e-6 times the shape's RMS"),
+        (
+            json!([1e-9, null]),
+            "modes[0].shape_std",
+            "below 1e-6 times the shape's RMS",
+        ),
         (json!(0.1), "modes[0].shape_std", "expected an array"),
-        (json!(["x", null]), "modes[0].shape_std[0]", "expected a number"),
+        (
+            json!(["x", null]),
+            "modes[0].shape_std[0]",
+            "expected a number",
+        ),
     ];
     for (std, field, needle) in cases {
         let v = with(|v| v["modes"][0]["shape_std"] = std.clone());

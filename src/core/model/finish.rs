@@ -168,7 +168,10 @@ fn massless_dofs(
             *d += par.nominal * v;
         }
     }
-    if let Some(&j) = massless.iter().find(|&&j| k_diag[j].is_nan() || k_diag[j] <= 0.0) {
+    if let Some(&j) = massless
+        .iter()
+        .find(|&&j| k_diag[j].is_nan() || k_diag[j] <= 0.0)
+    {
         return Err(ModelError::MasslessSingular {
             dof: labels[j].clone(),
         });

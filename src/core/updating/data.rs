@@ -86,7 +86,13 @@ pub fn positive_median<'a>(values: impl Iterator<Item = &'a f64>) -> Option<f64>
 pub fn floored_shape_std(std: &[f64]) -> Vec<f64> {
     let median = positive_median(std.iter()).unwrap_or(0.0);
     std.iter()
-        .map(|&s| if s < SHAPE_STD_FLOOR * median { median } else { s })
+        .map(|&s| {
+            if s < SHAPE_STD_FLOOR * median {
+                median
+            } else {
+                s
+            }
+        })
         .collect()
 }
 
@@ -94,12 +100,10 @@ impl MeasuredData {
     /// Builds `Σ_M` by (28) when every mode carries its uncertainties, otherwise the
     /// weights (9) with `w_psi`. (Modal-set validation rejects sets that mix the two.)
     pub fn new(raw: &[RawMode], w_psi: f64) -> Self {
-        let with_cov = raw
-            .iter()
-            .all(|m| {
-                m.frequency_cov.is_some()
-                    && (m.shape.is_none() || m.shape_nsd.is_some() || m.shape_std.is_some())
-            });
+        let with_cov = raw.iter().all(|m| {
+            m.frequency_cov.is_some()
+                && (m.shape.is_none() || m.shape_nsd.is_some() || m.shape_std.is_some())
+        });
         let weighting = if with_cov {
             Weighting::Covariance
         } else {
