@@ -9,10 +9,9 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 
-use super::{load_spec, write_json};
+use super::{load_description, write_json};
 use crate::contract::diagnosis::DiagnosisDoc;
 use crate::core::diagnosis::{Diagnosis, DiagnosisOptions, diagnose};
-use crate::core::model::Model;
 use crate::core::model::spec::ModelSpec;
 use crate::plot::{Panel, Scale, Series, figure_svg};
 
@@ -48,9 +47,7 @@ pub fn run(args: &DiagnoseArgs) -> Result<()> {
     if args.refits == 0 {
         bail!("--refits must be at least 1");
     }
-    let spec = load_spec(&args.model)?;
-    let model =
-        Model::from_spec(&spec).with_context(|| format!("model file {}", args.model.display()))?;
+    let (description, model) = load_description(&args.model)?;
     let set = super::inputs::load_set(&model, &args.data)?;
     let data = super::inputs::measured_data(&set, &model, args.shape_weight);
     std::fs::create_dir_all(&args.out)
@@ -64,7 +61,7 @@ pub fn run(args: &DiagnoseArgs) -> Result<()> {
     let mut round = 1;
     let mut last_stage = String::new();
     let d = diagnose(
-        &spec,
+        &description,
         &data,
         &DiagnosisOptions {
             alpha: args.alpha,
@@ -88,12 +85,22 @@ pub fn run(args: &DiagnoseArgs) -> Result<()> {
     let out = DiagnosisDoc::new(&d, &model.name, seconds);
     write_json(&args.out.join("diagnosis.json"), &out)?;
     std::fs::write(args.out.join("modes.svg"), modes_svg(&d))?;
-    std::fs::write(args.out.join("structure.svg"), structure_svg(&spec, &d))?;
     print!("{}", table(&d, seconds));
-    println!(
-        "written: {}/{{diagnosis.json, modes.svg, structure.svg}}",
-        args.out.display()
-    );
+    match description.spec() {
+        Some(spec) => {
+            std::fs::write(args.out.join("structure.svg"), structure_svg(spec, &d))?;
+            println!(
+                "written: {}/{{diagnosis.json, modes.svg, structure.svg}}",
+                args.out.display()
+            );
+        }
+        // An imported model has no geometry to draw.
+        None => println!(
+            "written: {}/{{diagnosis.json, modes.svg}} (no structure.svg: a model imported \
+             from matrices has no geometry)",
+            args.out.display()
+        ),
+    }
     Ok(())
 }
 

@@ -20,7 +20,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 
 use crate::core::model::Model;
-pub use crate::io::model::{load_model, load_spec};
+pub use crate::io::model::{load_description, load_model, load_spec};
 
 /// `--model M.toml [--theta a,b,…]`: a model evaluated at θ (default: its nominal θ).
 #[derive(Debug, clap::Args)]

@@ -36,7 +36,10 @@ pub struct SimulateArgs {
     pub time: String,
     /// Add an effect the model file lacks, `kind@location=value` (repeatable), e.g.
     /// `added-mass@J2R=0.5` (kg), `support-flexibility@BL.rz=2e4` (N·m/rad),
-    /// `member-stiffness@C2L=-0.2`, `modulus@global=0.05`, `joint-inertia@J1L=1e-3` (kg·m²).
+    /// `member-stiffness@C2L=-0.2`, `modulus@global=0.05`, `joint-inertia@J1L=1e-3` (kg·m²);
+    /// on a model imported from matrices, at a `locations` name or a DOF label:
+    /// `added-mass@floor2=150` (kg on each of its DOFs), `grounded-spring@bearing=1e6`,
+    /// `stiffness-scale@K0=-0.05`.
     #[arg(long)]
     pub inject: Vec<String>,
     /// Output file (boltwatch.modal_set.v1).
@@ -48,13 +51,14 @@ pub fn run(args: &SimulateArgs) -> Result<()> {
     let (model, theta) = if args.inject.is_empty() {
         args.at.load()?
     } else {
-        let mut spec = super::load_spec(&args.at.model)?;
+        let (mut description, _) = super::load_description(&args.at.model)?;
         for s in &args.inject {
             Injection::parse(s)
-                .and_then(|i| i.apply(&mut spec))
+                .and_then(|i| i.apply(&mut description))
                 .map_err(|e| anyhow::anyhow!("--inject {e}"))?;
         }
-        let model = crate::core::model::Model::from_spec(&spec)
+        let model = description
+            .build()
             .map_err(|e| anyhow::anyhow!("--inject: the model with the effects added: {e}"))?;
         let theta = super::parse_theta(&model, args.at.theta.as_deref(), "--theta")?;
         (model, theta)

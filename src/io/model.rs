@@ -5,15 +5,16 @@ use std::path::Path;
 
 use anyhow::{Context, Result, bail};
 
+use crate::core::diagnosis::Description;
 use crate::core::model::Model;
 use crate::core::model::spec::ModelSpec;
 use crate::settings::StructureSettings;
 
-/// Reads a model file without assembling it.
+/// Reads a TOML model file without assembling it.
 pub fn load_spec(path: &Path) -> Result<ModelSpec> {
     if is_matrices(path) {
         bail!(
-            "model {}: a model imported from matrices is read by modes, simulate, update, sweep-sigma, export-matrices, replay and run; this needs a TOML model file (diagnosing an imported model is not done yet)",
+            "model {}: a model imported from matrices has no model file to read",
             path.display()
         );
     }
@@ -31,6 +32,23 @@ pub fn load_model(path: &Path) -> Result<Model> {
     let text = std::fs::read_to_string(path)
         .with_context(|| format!("cannot read model file {}", path.display()))?;
     Model::from_toml(&text).with_context(|| format!("model file {}", path.display()))
+}
+
+/// A model as the diagnosis and `simulate --inject` enrich it: a TOML model file, or a
+/// model imported from matrices; with its assembly.
+pub fn load_description(path: &Path) -> Result<(Description, Model)> {
+    if is_matrices(path) {
+        let model = load_model(path)?;
+        Ok((
+            Description::matrices(std::sync::Arc::new(model.clone())),
+            model,
+        ))
+    } else {
+        let spec = load_spec(path)?;
+        let model =
+            Model::from_spec(&spec).with_context(|| format!("model file {}", path.display()))?;
+        Ok((Description::File(spec), model))
+    }
 }
 
 /// Whether `path` names an imported model's `model.json` (rather than a TOML model file).

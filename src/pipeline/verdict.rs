@@ -7,7 +7,7 @@
 use super::{DiagnoseRequest, measured_data};
 use crate::contract::alert::NamedEffect;
 use crate::contract::{Alert, AlertDetail, AlertKind, AlertLevel, Schema, Verdict, finite};
-use crate::core::diagnosis::{DiagnosisOptions, diagnose};
+use crate::core::diagnosis::{Description, DiagnosisOptions, diagnose};
 use crate::core::model::Model;
 use crate::core::model::spec::ModelSpec;
 
@@ -19,14 +19,18 @@ pub fn diagnosis_alert(
     req: &DiagnoseRequest,
 ) -> Alert {
     let data = measured_data(&req.set, model, shape_weight);
-    let diagnosed = match spec {
-        Some(spec) => diagnose(spec, &data, &DiagnosisOptions::default(), |_, _, _| {})
-            .map_err(|e| e.to_string()),
-        None => Err(
-            "the model was imported from matrices, and diagnosing an imported model is not done yet (issue 24)"
-                .to_string(),
-        ),
+    // An imported model is copied only here, when a warning is diagnosed.
+    let description = match spec {
+        Some(spec) => Description::File(spec.clone()),
+        None => Description::matrices(std::sync::Arc::new(model.clone())),
     };
+    let diagnosed = diagnose(
+        &description,
+        &data,
+        &DiagnosisOptions::default(),
+        |_, _, _| {},
+    )
+    .map_err(|e| e.to_string());
     let (diagnosis, message) = match diagnosed {
         Ok(d) => {
             let named = d

@@ -14,6 +14,8 @@
 //! flexibility: `u` is the compliance, the value its stiffness).
 
 use super::DiagnosisError;
+use super::description::Description;
+use crate::core::model::Model;
 use crate::core::model::spec::{MassSpec, MaterialSpec, ModelSpec, SpringSpec};
 
 /// Which values of the internal coordinate are physical.
@@ -25,8 +27,86 @@ pub enum Sign {
     Any,
 }
 
-/// A kind of missing physical effect (module docs).
+/// A kind of missing physical effect (module docs), on a model file or an imported model
+/// ([`Description`]).
 pub trait Effect: Send + Sync {
+    /// Contract name (`added-mass`, …).
+    fn kind(&self) -> &'static str;
+    /// Unit of [`Effect::value`] at `location`.
+    fn unit(&self, location: &str) -> &'static str;
+    /// Every location of the model where the effect can be added (the candidates).
+    fn locations(&self, d: &Description) -> Vec<String>;
+    /// Whether the effect can be added at `location` (`--inject`): one of
+    /// [`Effect::locations`] unless the effect says otherwise.
+    fn accepts(&self, d: &Description, location: &str) -> bool {
+        self.locations(d).iter().any(|l| l == location)
+    }
+    /// Adds the effect at `location` with internal coordinate `u`.
+    fn apply(&self, d: &mut Description, location: &str, u: f64) -> Result<(), DiagnosisError>;
+    /// A step of `u` that changes the modal data measurably but stays in the linear range
+    /// (finite-difference screening, the scale of the search).
+    fn step(&self, d: &Description, location: &str) -> f64;
+    fn sign(&self) -> Sign;
+    /// The reported value for internal coordinate `u`.
+    fn value(&self, u: f64) -> f64 {
+        u
+    }
+    /// The reported standard deviation for `u ± std_u` (first order).
+    fn value_std(&self, u: f64, std_u: f64) -> f64 {
+        let _ = u;
+        std_u
+    }
+    /// The internal coordinate of a reported value (`--inject`).
+    fn coordinate(&self, value: f64) -> f64 {
+        value
+    }
+}
+
+impl<T: FileEffect> Effect for T {
+    fn kind(&self) -> &'static str {
+        FileEffect::kind(self)
+    }
+    fn unit(&self, location: &str) -> &'static str {
+        FileEffect::unit(self, location)
+    }
+    fn locations(&self, d: &Description) -> Vec<String> {
+        d.spec()
+            .map_or_else(Vec::new, |spec| FileEffect::locations(self, spec))
+    }
+    fn apply(&self, d: &mut Description, location: &str, u: f64) -> Result<(), DiagnosisError> {
+        match d {
+            Description::File(spec) => FileEffect::apply(self, spec, location, u),
+            Description::Matrices(_) => Err(needs_geometry(FileEffect::kind(self))),
+        }
+    }
+    fn step(&self, d: &Description, location: &str) -> f64 {
+        d.spec()
+            .map_or(1.0, |spec| FileEffect::step(self, spec, location))
+    }
+    fn sign(&self) -> Sign {
+        FileEffect::sign(self)
+    }
+    fn value(&self, u: f64) -> f64 {
+        FileEffect::value(self, u)
+    }
+    fn value_std(&self, u: f64, std_u: f64) -> f64 {
+        FileEffect::value_std(self, u, std_u)
+    }
+    fn coordinate(&self, value: f64) -> f64 {
+        FileEffect::coordinate(self, value)
+    }
+}
+
+fn needs_geometry(kind: &str) -> DiagnosisError {
+    DiagnosisError::Location(format!(
+        "{kind} needs a model file's geometry; on a model imported from matrices the effects \
+         are added-mass, grounded-spring and stiffness-scale"
+    ))
+}
+
+/// An effect that needs a model file's geometry (members, joints, supports): it edits the
+/// file. Every such effect is an [`Effect`] that has no locations in an imported model.
+pub trait FileEffect: Send + Sync {
     /// Contract name (`added-mass`, …).
     fn kind(&self) -> &'static str;
     /// Unit of [`Effect::value`] at `location`.
@@ -64,6 +144,8 @@ pub fn catalogue() -> Vec<Box<dyn Effect>> {
         Box::new(JointInertia),
         Box::new(Splice),
         Box::new(AxialForce),
+        Box::new(GroundedSpring),
+        Box::new(StiffnessScale),
     ]
 }
 
@@ -84,17 +166,14 @@ fn interior_nodes(spec: &ModelSpec) -> Vec<String> {
         .collect()
 }
 
-/// A point mass (kg) on both translations of a node, joint or interior mesh node.
+/// A point mass (kg): in a model file on both translations of a node, joint or interior
+/// mesh node; in an imported model on each DOF of a named location (or of one DOF named by
+/// its label), added to the diagonal of `M` (so on a rotation it is a rotary inertia,
+/// kg·m²).
 pub struct AddedMass;
 
-impl Effect for AddedMass {
-    fn kind(&self) -> &'static str {
-        "added-mass"
-    }
-    fn unit(&self, _: &str) -> &'static str {
-        "kg"
-    }
-    fn locations(&self, spec: &ModelSpec) -> Vec<String> {
+impl AddedMass {
+    fn file_locations(spec: &ModelSpec) -> Vec<String> {
         let supported: Vec<&str> = spec.supports.iter().map(|s| s.node.as_str()).collect();
         spec.nodes
             .iter()
@@ -103,35 +182,214 @@ impl Effect for AddedMass {
             .chain(interior_nodes(spec))
             .collect()
     }
-    fn apply(&self, spec: &mut ModelSpec, location: &str, u: f64) -> Result<(), DiagnosisError> {
-        if !self.locations(spec).iter().any(|l| l == location) {
-            return Err(unknown(location, "a free node or interior mesh node"));
+}
+
+impl Effect for AddedMass {
+    fn kind(&self) -> &'static str {
+        "added-mass"
+    }
+    fn unit(&self, _: &str) -> &'static str {
+        "kg"
+    }
+    fn locations(&self, d: &Description) -> Vec<String> {
+        match d {
+            Description::File(spec) => Self::file_locations(spec),
+            Description::Matrices(e) => matrix_locations(&e.base),
         }
-        if u != 0.0 {
-            spec.masses.push(MassSpec {
-                at: location.to_string(),
-                mass: u,
-                inertia: 0.0,
-            });
+    }
+    fn accepts(&self, d: &Description, location: &str) -> bool {
+        match d {
+            Description::File(spec) => Self::file_locations(spec).iter().any(|l| l == location),
+            Description::Matrices(e) => e.base.location_dofs(location).is_some(),
+        }
+    }
+    fn apply(&self, d: &mut Description, location: &str, u: f64) -> Result<(), DiagnosisError> {
+        match d {
+            Description::File(spec) => {
+                if !Self::file_locations(spec).iter().any(|l| l == location) {
+                    return Err(unknown(location, "a free node or interior mesh node"));
+                }
+                if u != 0.0 {
+                    spec.masses.push(MassSpec {
+                        at: location.to_string(),
+                        mass: u,
+                        inertia: 0.0,
+                    });
+                }
+            }
+            Description::Matrices(e) => {
+                let dofs = e.base.location_dofs(location).ok_or_else(|| {
+                    unknown(location, "a location (model.json `locations`) or DOF label")
+                })?;
+                if u != 0.0 {
+                    e.masses.extend(dofs.into_iter().map(|i| (i, u)));
+                }
+            }
         }
         Ok(())
     }
-    fn step(&self, spec: &ModelSpec, _: &str) -> f64 {
-        // 1 % of the lightest joint; 50 g without joints.
-        let lightest = spec
-            .joints
-            .iter()
-            .map(|j| j.mass)
-            .filter(|&m| m > 0.0)
-            .fold(f64::INFINITY, f64::min);
-        if lightest.is_finite() {
-            0.01 * lightest
-        } else {
-            0.05
+    fn step(&self, d: &Description, location: &str) -> f64 {
+        match d {
+            Description::File(spec) => {
+                // 1 % of the lightest joint; 50 g without joints.
+                let lightest = spec
+                    .joints
+                    .iter()
+                    .map(|j| j.mass)
+                    .filter(|&m| m > 0.0)
+                    .fold(f64::INFINITY, f64::min);
+                if lightest.is_finite() {
+                    0.01 * lightest
+                } else {
+                    0.05
+                }
+            }
+            // 1 % of the mean diagonal mass of the location's DOFs that carry mass (of
+            // all DOFs with mass if none of them does).
+            Description::Matrices(e) => {
+                let diag = diagonal(e.base.mass());
+                let mean = |dofs: &mut dyn Iterator<Item = usize>| {
+                    let (sum, count) = dofs
+                        .map(|i| diag[i])
+                        .filter(|&m| m > 0.0)
+                        .fold((0.0, 0usize), |(s, c), m| (s + m, c + 1));
+                    (count > 0).then(|| sum / count as f64)
+                };
+                let dofs = e.base.location_dofs(location).unwrap_or_default();
+                0.01 * mean(&mut dofs.into_iter())
+                    .or_else(|| mean(&mut (0..diag.len())))
+                    .unwrap_or(1.0)
+            }
         }
     }
     fn sign(&self) -> Sign {
         Sign::Positive
+    }
+}
+
+/// The candidate places of an imported model: its named locations, or every DOF (by label)
+/// when it names none.
+fn matrix_locations(model: &Model) -> Vec<String> {
+    if model.locations().is_empty() {
+        model.dof_labels().to_vec()
+    } else {
+        model.locations().iter().map(|l| l.name.clone()).collect()
+    }
+}
+
+/// The diagonal of a matrix stored with both triangles.
+fn diagonal(a: &crate::core::model::Csc) -> Vec<f64> {
+    let s = a.symbolic();
+    (0..a.ncols())
+        .map(|j| {
+            s.row_idx_of_col_raw(j)
+                .binary_search(&j)
+                .map_or(0.0, |k| a.val_of_col(j)[k])
+        })
+        .collect()
+}
+
+/// A grounded spring on each DOF of a named location (or of one DOF named by its label) of
+/// an imported model, added to the diagonal of `K0`: a support or a connection to the
+/// ground the model lacks. The value is the stiffness in the units of `K` at those DOFs
+/// (N/m on a translation, N·m/rad on a rotation).
+pub struct GroundedSpring;
+
+impl Effect for GroundedSpring {
+    fn kind(&self) -> &'static str {
+        "grounded-spring"
+    }
+    fn unit(&self, _: &str) -> &'static str {
+        "N/m"
+    }
+    fn locations(&self, d: &Description) -> Vec<String> {
+        match d {
+            Description::File(_) => Vec::new(),
+            Description::Matrices(e) => matrix_locations(&e.base),
+        }
+    }
+    fn accepts(&self, d: &Description, location: &str) -> bool {
+        match d {
+            Description::File(_) => false,
+            Description::Matrices(e) => e.base.location_dofs(location).is_some(),
+        }
+    }
+    fn apply(&self, d: &mut Description, location: &str, u: f64) -> Result<(), DiagnosisError> {
+        let Description::Matrices(e) = d else {
+            return Err(DiagnosisError::Location(
+                "grounded-spring is an effect of models imported from matrices; a model file \
+                 has support-flexibility"
+                    .into(),
+            ));
+        };
+        let dofs = e
+            .base
+            .location_dofs(location)
+            .ok_or_else(|| unknown(location, "a location (model.json `locations`) or DOF label"))?;
+        if u != 0.0 {
+            e.springs.extend(dofs.into_iter().map(|i| (i, u)));
+        }
+        Ok(())
+    }
+    /// `0.01 λ₁ tr(M)`: a spring that, on a DOF moving with the whole structure in its
+    /// first mode, raises λ₁ by about 1 % per unit of `tr(M)` over the moving mass (a few
+    /// per cent at most): measurable, and far from the saturation of a rigid support.
+    fn step(&self, d: &Description, _: &str) -> f64 {
+        match d {
+            Description::File(_) => 1.0,
+            Description::Matrices(e) => {
+                let trace: f64 = diagonal(e.base.mass()).iter().sum();
+                0.01 * e.lambda_1() * trace
+            }
+        }
+    }
+    fn sign(&self) -> Sign {
+        Sign::Positive
+    }
+}
+
+/// A relative error of `K0`, the stiffness no parameter scales, of an imported model
+/// (location `K0`): `K0 ← (1 + u) K0`. Not a candidate when `K0` is empty.
+pub struct StiffnessScale;
+
+impl Effect for StiffnessScale {
+    fn kind(&self) -> &'static str {
+        "stiffness-scale"
+    }
+    fn unit(&self, _: &str) -> &'static str {
+        "relative"
+    }
+    fn locations(&self, d: &Description) -> Vec<String> {
+        match d {
+            Description::Matrices(e) if e.base.k0().val().iter().any(|&v| v != 0.0) => {
+                vec!["K0".to_string()]
+            }
+            _ => Vec::new(),
+        }
+    }
+    fn apply(&self, d: &mut Description, location: &str, u: f64) -> Result<(), DiagnosisError> {
+        if !self.accepts(d, location) {
+            return Err(unknown(
+                location,
+                "`K0` (the stiffness-scale effect's location, in a model imported from \
+                 matrices with a non-empty K0)",
+            ));
+        }
+        if u <= -1.0 {
+            return Err(DiagnosisError::Location(format!(
+                "stiffness-scale = {u}: K0 would not be positive"
+            )));
+        }
+        if let Description::Matrices(e) = d {
+            e.k0_scale = (1.0 + e.k0_scale) * (1.0 + u) - 1.0;
+        }
+        Ok(())
+    }
+    fn step(&self, _: &Description, _: &str) -> f64 {
+        0.01
+    }
+    fn sign(&self) -> Sign {
+        Sign::Any
     }
 }
 
@@ -174,7 +432,7 @@ impl SupportFlexibility {
     }
 }
 
-impl Effect for SupportFlexibility {
+impl FileEffect for SupportFlexibility {
     fn kind(&self) -> &'static str {
         "support-flexibility"
     }
@@ -260,7 +518,7 @@ fn scaled_material(spec: &mut ModelSpec, material: &str, factor: f64, tag: &str)
 /// A change of one member's bending stiffness EI, relative (0.1: 10 % stiffer).
 pub struct MemberStiffness;
 
-impl Effect for MemberStiffness {
+impl FileEffect for MemberStiffness {
     fn kind(&self) -> &'static str {
         "member-stiffness"
     }
@@ -301,7 +559,7 @@ impl Effect for MemberStiffness {
 /// when a parameter of the model already scales the modulus of every member.
 pub struct Modulus;
 
-impl Effect for Modulus {
+impl FileEffect for Modulus {
     fn kind(&self) -> &'static str {
         "modulus"
     }
@@ -348,7 +606,7 @@ impl Effect for Modulus {
 /// An error of a rigid joint's rotary inertia (kg·m²), either sign.
 pub struct JointInertia;
 
-impl Effect for JointInertia {
+impl FileEffect for JointInertia {
     fn kind(&self) -> &'static str {
         "joint-inertia"
     }
@@ -397,7 +655,7 @@ fn member_length_ei(spec: &ModelSpec, member: &str) -> Option<(f64, f64)> {
 /// preload, a thermal restraint force, a load carried by the frame.
 pub struct AxialForce;
 
-impl Effect for AxialForce {
+impl FileEffect for AxialForce {
     fn kind(&self) -> &'static str {
         "axial-force"
     }
@@ -441,7 +699,7 @@ impl Splice {
     }
 }
 
-impl Effect for Splice {
+impl FileEffect for Splice {
     fn kind(&self) -> &'static str {
         "splice"
     }

@@ -26,10 +26,10 @@ pub(super) fn mm_options() -> ModeMatchingOptions {
 }
 
 pub(super) fn build(
-    spec: &ModelSpec,
+    spec: &Description,
     what: impl FnOnce() -> String,
 ) -> Result<Model, DiagnosisError> {
-    Model::from_spec(spec).map_err(|source| DiagnosisError::Model {
+    spec.build().map_err(|source| DiagnosisError::Model {
         what: what(),
         source,
     })
@@ -37,7 +37,7 @@ pub(super) fn build(
 
 /// Fits `spec` to `data` from `theta0` (globalized if `global`).
 pub(super) fn fit(
-    spec: &ModelSpec,
+    spec: &Description,
     data: &MeasuredData,
     theta0: &[f64],
     global: bool,
@@ -58,7 +58,7 @@ pub(super) fn fit(
 /// kept: the fitted θ of the model without the effect can sit in a valley the effect's
 /// true value does not share), +∞ when the enriched model cannot be built or fitted.
 pub(super) fn profile_point(
-    spec: &ModelSpec,
+    spec: &Description,
     effect: &dyn Effect,
     location: &str,
     u: f64,
@@ -70,7 +70,7 @@ pub(super) fn profile_point(
     if effect.apply(&mut s, location, u).is_err() {
         return best;
     }
-    let Ok(model) = Model::from_spec(&s) else {
+    let Ok(model) = s.build() else {
         return best;
     };
     let Ok(ev) = Evaluator::new(&model) else {

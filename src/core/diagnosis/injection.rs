@@ -2,8 +2,8 @@
 //! and the tests that hide an effect from the model class).
 
 use super::DiagnosisError;
+use super::description::Description;
 use super::effects::{Effect, Sign, by_kind, catalogue};
-use crate::core::model::spec::ModelSpec;
 
 /// An effect added to a model file: `kind@location=value` (`added-mass@J2R=0.5`), the
 /// value in the effect's unit.
@@ -47,8 +47,8 @@ impl Injection {
         })
     }
 
-    /// Adds the effect to `spec`.
-    pub fn apply(&self, spec: &mut ModelSpec) -> Result<(), DiagnosisError> {
+    /// Adds the effect to the model.
+    pub fn apply(&self, spec: &mut Description) -> Result<(), DiagnosisError> {
         if self.effect.sign() == Sign::Positive && self.value <= 0.0 {
             return Err(DiagnosisError::Location(format!(
                 "{}@{} = {}: must be > 0",
@@ -57,8 +57,14 @@ impl Injection {
                 self.value
             )));
         }
-        let known = self.effect.locations(spec);
-        if !known.contains(&self.location) {
+        if !self.effect.accepts(spec, &self.location) {
+            let known = self.effect.locations(spec);
+            if known.is_empty() {
+                // Not an effect of this kind of model: its own error says why.
+                return self
+                    .effect
+                    .apply(spec, &self.location, self.effect.coordinate(self.value));
+            }
             return Err(DiagnosisError::Location(format!(
                 "{}@{}: not a location of this effect in the model (e.g. {})",
                 self.effect.kind(),

@@ -21,6 +21,7 @@
 //! 5. A named effect is added to the model (at its fitted value) and the next round starts;
 //!    the workflow stops when nothing is significant.
 
+pub mod description;
 pub mod effects;
 mod fit;
 pub mod injection;
@@ -31,13 +32,13 @@ mod search;
 use faer::Mat;
 
 use crate::core::modal::ModalError;
-use crate::core::model::spec::ModelSpec;
 use crate::core::model::{Model, ModelError};
 use crate::core::stats::chi2_1_upper_quantile;
 use crate::core::updating::{
     Evaluation, Evaluator, FinalStep, MeasuredData, ModeMatching, ModeMatchingOptions,
     ModeMatchingResult, StepControl, UpdateError,
 };
+pub use description::Description;
 use effects::{Effect, Sign};
 use fit::{build, fit, localize, profile_point};
 use refit::{effect_of, map_with_progress, refit, reprofile, with_effects};
@@ -178,14 +179,14 @@ pub struct Diagnosis {
     /// The likelihood-ratio threshold of the test.
     pub threshold: f64,
     pub alpha: f64,
-    /// The model file with every named effect added.
-    pub enriched: ModelSpec,
+    /// The model with every named effect added.
+    pub enriched: Description,
 }
 
 /// Runs the workflow (module docs) on `spec` and `data`. `progress(stage, done, total)` is
 /// called as candidates are screened and refitted.
 pub fn diagnose(
-    spec: &ModelSpec,
+    spec: &Description,
     data: &MeasuredData,
     opts: &DiagnosisOptions,
     mut progress: impl FnMut(&str, usize, usize),

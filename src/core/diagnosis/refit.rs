@@ -5,7 +5,7 @@ use super::*;
 
 /// The full nonlinear refit of one candidate (module docs, step 3).
 pub(super) fn refit(
-    spec: &ModelSpec,
+    spec: &Description,
     effect: &dyn Effect,
     c: &Candidate,
     data: &MeasuredData,
@@ -27,7 +27,7 @@ pub(super) fn refit(
     // Should the minimum's other starts find a lower ε than the continuation did, the path
     // followed a valley that is not the lowest: the search is repeated with all three
     // everywhere.
-    let nominal = Model::from_spec(spec).ok()?.nominal_theta();
+    let nominal = spec.build().ok()?.nominal_theta();
     let best = std::cell::RefCell::new((f64::INFINITY, theta0.to_vec()));
     let eps_at = |u: f64, all: bool| {
         let last = best.borrow().1.clone();
@@ -107,10 +107,10 @@ pub(super) fn map_with_progress<T: Sync, R: Send>(
 
 /// `spec` with `named` added at their values.
 pub(super) fn with_effects(
-    spec: &ModelSpec,
+    spec: &Description,
     effects: &[Box<dyn Effect>],
     named: &[&Refit],
-) -> Result<ModelSpec, DiagnosisError> {
+) -> Result<Description, DiagnosisError> {
     let mut s = spec.clone();
     for r in named {
         effect_of(effects, r.effect).apply(&mut s, &r.location, r.u)?;
@@ -121,7 +121,7 @@ pub(super) fn with_effects(
 /// One pass of coordinate descent over the values of `set`: each effect's value refitted
 /// (profile) with the others at theirs. Returns ε of `spec` with the set at its new values.
 pub(super) fn reprofile(
-    spec: &ModelSpec,
+    spec: &Description,
     effects: &[Box<dyn Effect>],
     set: &mut [Refit],
     data: &MeasuredData,

@@ -6,7 +6,7 @@ use super::*;
 /// Every (effect, location) of `spec`, minus those already named.
 pub(super) fn candidates_of<'a>(
     effects: &'a [Box<dyn Effect>],
-    spec: &ModelSpec,
+    spec: &Description,
     named: &[Named],
 ) -> Vec<(&'a dyn Effect, String)> {
     effects
@@ -23,7 +23,7 @@ pub(super) fn candidates_of<'a>(
 /// Screens one candidate (module docs, step 2); `None` when its finite difference changed
 /// the mode pairing or the model would not build.
 pub(super) fn screen(
-    spec: &ModelSpec,
+    spec: &Description,
     effect: &dyn Effect,
     location: &str,
     data: &MeasuredData,
@@ -33,7 +33,7 @@ pub(super) fn screen(
     let h = effect.step(spec, location);
     let mut s = spec.clone();
     effect.apply(&mut s, location, h).ok()?;
-    let model = Model::from_spec(&s).ok()?;
+    let model = s.build().ok()?;
     let mut ev = Evaluator::new(&model).ok()?;
     let e = ev.evaluate(&model, data, &base.theta).ok()?;
     if e.pairing != base.pairing || e.r.len() != base.r.len() {

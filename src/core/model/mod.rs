@@ -332,6 +332,61 @@ impl Model {
         }
     }
 
+    /// This model with additions that need no geometry (the effects a diagnosis can put
+    /// into an imported model): `K0` scaled by `1 + k0_scale`, `springs` (DOF, N/m or
+    /// N·m/rad) added to `K0`'s diagonal and `masses` (DOF, kg or kg·m²) to `M`'s. The
+    /// result goes through the checks of every assembly (massless DOFs, symmetry).
+    pub fn edited(
+        &self,
+        masses: &[(usize, f64)],
+        springs: &[(usize, f64)],
+        k0_scale: f64,
+    ) -> Result<Model, ModelError> {
+        let n = self.n_dof();
+        let with_diagonal = |a: &Csc, scale: f64, add: &[(usize, f64)]| {
+            let s = a.symbolic();
+            let entries: Vec<(usize, usize, f64)> = (0..n)
+                .flat_map(|j| {
+                    s.row_idx_of_col_raw(j)
+                        .iter()
+                        .zip(a.val_of_col(j))
+                        .map(move |(&i, &v)| (i, j, scale * v))
+                })
+                .chain(add.iter().map(|&(i, v)| (i, i, v)))
+                .collect();
+            sparse::csc_from_triplets(n, entries.into_iter())
+        };
+        let mut mats = Vec::with_capacity(self.n_params() + 2);
+        mats.push(with_diagonal(&self.k0, 1.0 + k0_scale, springs));
+        mats.extend(self.k_params.iter().cloned());
+        mats.push(with_diagonal(&self.m, 1.0, masses));
+        let mut model = finish::finish(
+            &self.name,
+            self.dof_labels.clone(),
+            mats,
+            self.parameters.clone(),
+            self.connections.clone(),
+            self.channels.clone(),
+            self.bayesian.clone(),
+        )?;
+        model.locations = self.locations.clone();
+        Ok(model)
+    }
+
+    /// The DOFs of a place of this model: a named location, or one DOF by its label.
+    pub fn location_dofs(&self, name: &str) -> Option<Vec<usize>> {
+        self.locations
+            .iter()
+            .find(|l| l.name == name)
+            .map(|l| l.dofs.clone())
+            .or_else(|| {
+                self.dof_labels
+                    .iter()
+                    .position(|l| l == name)
+                    .map(|i| vec![i])
+            })
+    }
+
     /// Dense `M`.
     pub fn mass_dense(&self) -> Mat<f64> {
         let mut out = Mat::zeros(self.n_dof(), self.n_dof());
