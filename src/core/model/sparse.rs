@@ -103,6 +103,75 @@ pub fn csc_from_lower(n: usize, lower: &[(usize, usize, f64)]) -> Csc {
     csc_from_triplets(n, lower.iter().copied().chain(mirror))
 }
 
+/// The symmetric `n × n` matrix, both triangles stored, of entries that give one triangle
+/// of it, each entry in whichever triangle (a `symmetric` Matrix Market file). `Err` with
+/// the (row, column) of the lower triangle given twice. Counting sort by column, rows sorted
+/// within each; the upper triangle is then read off in order, without another sort.
+pub fn csc_from_one_triangle(
+    n: usize,
+    entries: &[(usize, usize, f64)],
+) -> Result<Csc, (usize, usize)> {
+    let lower = |&(i, j, v): &(usize, usize, f64)| if i >= j { (i, j, v) } else { (j, i, v) };
+    let mut start = vec![0usize; n + 1];
+    for e in entries {
+        start[lower(e).1 + 1] += 1;
+    }
+    for j in 0..n {
+        start[j + 1] += start[j];
+    }
+    let mut next = start.clone();
+    let mut low = vec![(0usize, 0.0f64); entries.len()];
+    for e in entries {
+        let (i, j, v) = lower(e);
+        low[next[j]] = (i, v);
+        next[j] += 1;
+    }
+    // Rows ascending in each column; a row twice is a duplicate.
+    for j in 0..n {
+        let col = &mut low[start[j]..start[j + 1]];
+        col.sort_unstable_by_key(|e| e.0);
+        if let Some(w) = col.windows(2).find(|w| w[0].0 == w[1].0) {
+            return Err((w[0].0, j));
+        }
+    }
+    // Column j of the full matrix: row c for each lower entry (j, c), c < j (met in
+    // ascending c when the columns are read in order), then its own lower rows.
+    let mut upper_count = vec![0usize; n];
+    for (c, w) in start.windows(2).enumerate() {
+        for &(i, _) in &low[w[0]..w[1]] {
+            if i > c {
+                upper_count[i] += 1;
+            }
+        }
+    }
+    let mut col_ptr = Vec::with_capacity(n + 1);
+    col_ptr.push(0usize);
+    for j in 0..n {
+        col_ptr.push(col_ptr[j] + upper_count[j] + (start[j + 1] - start[j]));
+    }
+    let total = col_ptr[n];
+    let mut row_idx = vec![0usize; total];
+    let mut val = vec![0.0f64; total];
+    let mut fill: Vec<usize> = col_ptr[..n].to_vec();
+    for c in 0..n {
+        for &(i, v) in &low[start[c]..start[c + 1]] {
+            if i > c {
+                row_idx[fill[i]] = c;
+                val[fill[i]] = v;
+                fill[i] += 1;
+            }
+        }
+        // Every column of the upper part of c is done once c is reached.
+        for &(i, v) in &low[start[c]..start[c + 1]] {
+            row_idx[fill[c]] = i;
+            val[fill[c]] = v;
+            fill[c] += 1;
+        }
+    }
+    let symbolic = SymbolicSparseColMat::new_checked(n, n, col_ptr, None, row_idx);
+    Ok(SparseColMat::new(symbolic, val))
+}
+
 /// Column `j` of `a` and of `b` side by side: every row stored in either, ascending, with
 /// its value in each (zero where it is not stored).
 pub fn column_pairs<'a>(
@@ -239,28 +308,45 @@ pub struct UnionPattern {
 
 impl UnionPattern {
     pub fn new(n: usize, mats: &[&Csc]) -> Self {
+        use rayon::prelude::*;
         // Column by column: the rows of every matrix and the diagonal (kept so a row and
-        // column can always be pinned to the identity), sorted and deduplicated.
-        let entries: usize = mats.iter().map(|m| m.val().len()).sum();
-        let mut col_ptr = Vec::with_capacity(n + 1);
-        let mut row_idx = Vec::with_capacity(entries + n);
-        col_ptr.push(0);
-        for j in 0..n {
-            let first = row_idx.len();
-            row_idx.push(j);
-            for m in mats {
-                row_idx.extend_from_slice(m.symbolic().row_idx_of_col_raw(j));
-            }
-            row_idx[first..].sort_unstable();
-            let mut kept = first;
-            for r in first..row_idx.len() {
-                if r == first || row_idx[r] != row_idx[kept - 1] {
-                    row_idx[kept] = row_idx[r];
-                    kept += 1;
+        // column can always be pinned to the identity), sorted and deduplicated. Blocks of
+        // columns on the worker threads (a 100,000-DOF solid's matrices hold 15 million
+        // entries), joined in order.
+        let blocks = column_blocks(n);
+        let parts: Vec<(Vec<usize>, Vec<usize>)> = blocks
+            .par_windows(2)
+            .map(|w| {
+                let mut counts = Vec::with_capacity(w[1] - w[0]);
+                let mut rows = Vec::new();
+                for j in w[0]..w[1] {
+                    let first = rows.len();
+                    rows.push(j);
+                    for m in mats {
+                        rows.extend_from_slice(m.symbolic().row_idx_of_col_raw(j));
+                    }
+                    rows[first..].sort_unstable();
+                    let mut kept = first;
+                    for r in first..rows.len() {
+                        if r == first || rows[r] != rows[kept - 1] {
+                            rows[kept] = rows[r];
+                            kept += 1;
+                        }
+                    }
+                    rows.truncate(kept);
+                    counts.push(kept - first);
                 }
+                (counts, rows)
+            })
+            .collect();
+        let mut col_ptr = Vec::with_capacity(n + 1);
+        col_ptr.push(0);
+        let mut row_idx = Vec::with_capacity(parts.iter().map(|p| p.1.len()).sum());
+        for (counts, rows) in parts {
+            for c in counts {
+                col_ptr.push(col_ptr.last().expect("starts at 0") + c);
             }
-            row_idx.truncate(kept);
-            col_ptr.push(kept);
+            row_idx.extend(rows);
         }
         let nnz = row_idx.len();
         let pattern = Csc::new(
@@ -272,20 +358,38 @@ impl UnionPattern {
             .iter()
             .map(|m| {
                 let s = m.symbolic();
-                let mut map = Vec::with_capacity(s.row_idx().len());
-                for j in 0..n {
-                    let rows = ps.row_idx_of_col_raw(j);
-                    let base = ps.col_ptr()[j];
-                    for &i in s.row_idx_of_col_raw(j) {
-                        let pos = rows.binary_search(&i).expect("entry is in the union");
-                        map.push(base + pos);
-                    }
-                }
-                map
+                let parts: Vec<Vec<usize>> = blocks
+                    .par_windows(2)
+                    .map(|w| {
+                        let mut map = Vec::new();
+                        for j in w[0]..w[1] {
+                            let rows = ps.row_idx_of_col_raw(j);
+                            let base = ps.col_ptr()[j];
+                            for &i in s.row_idx_of_col_raw(j) {
+                                let pos = rows.binary_search(&i).expect("entry is in the union");
+                                map.push(base + pos);
+                            }
+                        }
+                        map
+                    })
+                    .collect();
+                parts.concat()
             })
             .collect();
         Self { pattern, maps }
     }
+}
+
+/// Column blocks for the worker threads: boundaries from 0 to `n`, a few blocks per thread.
+fn column_blocks(n: usize) -> Vec<usize> {
+    let blocks = if n < 4096 {
+        1
+    } else {
+        4 * rayon::current_num_threads()
+    };
+    let mut b: Vec<usize> = (0..=blocks).map(|k| n * k / blocks).collect();
+    b.dedup();
+    b
 }
 
 /// A value array for `K(θ) − σM` that the source matrices of a union pattern scatter into:
@@ -374,42 +478,58 @@ impl Reordered {
             }
             None => ((0..n).collect(), (0..n).collect()),
         };
-        // The lower triangle of P A Pᵀ, by columns, each entry with its union position.
-        let mut cols: Vec<Vec<(usize, usize)>> = vec![Vec::new(); n];
-        let mut below = vec![MIRROR; pattern.row_idx().len()];
+        // The lower triangle of P A Pᵀ, by columns, each entry with its union position:
+        // counted, placed and sorted within each column in flat arrays (one allocation,
+        // not one per column: 0.25 → 0.1 s on a 100,000-DOF solid).
+        let in_lower = |i: usize, j: usize| inv[i] >= inv[j];
+        let mut col_ptr = vec![0usize; n + 1];
         for j in 0..n {
-            let base = pattern.col_ptr()[j];
-            for (k, &i) in pattern.row_idx_of_col_raw(j).iter().enumerate() {
-                let (pi, pj) = (inv[i], inv[j]);
-                if pi >= pj {
-                    cols[pj].push((pi, base + k));
+            for &i in pattern.row_idx_of_col_raw(j) {
+                if in_lower(i, j) {
+                    col_ptr[inv[j] + 1] += 1;
                 }
             }
         }
-        let mut col_ptr = Vec::with_capacity(n + 1);
-        let mut row_idx = Vec::with_capacity(pattern.row_idx().len() / 2 + n);
-        col_ptr.push(0);
-        for col in &mut cols {
+        for j in 0..n {
+            col_ptr[j + 1] += col_ptr[j];
+        }
+        let mut next = col_ptr.clone();
+        let mut entries = vec![(0usize, 0usize); col_ptr[n]];
+        for j in 0..n {
+            let base = pattern.col_ptr()[j];
+            for (k, &i) in pattern.row_idx_of_col_raw(j).iter().enumerate() {
+                if in_lower(i, j) {
+                    entries[next[inv[j]]] = (inv[i], base + k);
+                    next[inv[j]] += 1;
+                }
+            }
+        }
+        let mut below = vec![MIRROR; pattern.row_idx().len()];
+        let mut row_idx = Vec::with_capacity(entries.len());
+        for c in 0..n {
+            let col = &mut entries[col_ptr[c]..col_ptr[c + 1]];
             col.sort_unstable();
             for &(row, pos) in col.iter() {
                 below[pos] = row_idx.len();
                 row_idx.push(row);
             }
-            col_ptr.push(row_idx.len());
         }
-        // faer reads an identity-ordered pattern as its upper triangle: the transpose.
-        let mut upper_cols: Vec<Vec<usize>> = vec![Vec::new(); n];
-        for (j, col) in cols.iter().enumerate() {
-            for &(i, _) in col {
-                upper_cols[i].push(j);
+        // faer reads an identity-ordered pattern as its upper triangle: the transpose
+        // (columns read in order, so each of its columns comes out sorted).
+        let mut upper_ptr = vec![0usize; n + 1];
+        for &i in &row_idx {
+            upper_ptr[i + 1] += 1;
+        }
+        for j in 0..n {
+            upper_ptr[j + 1] += upper_ptr[j];
+        }
+        let mut fill = upper_ptr.clone();
+        let mut upper_idx = vec![0usize; row_idx.len()];
+        for c in 0..n {
+            for &i in &row_idx[col_ptr[c]..col_ptr[c + 1]] {
+                upper_idx[fill[i]] = c;
+                fill[i] += 1;
             }
-        }
-        let mut upper_ptr = Vec::with_capacity(n + 1);
-        let mut upper_idx = Vec::with_capacity(row_idx.len());
-        upper_ptr.push(0);
-        for col in &upper_cols {
-            upper_idx.extend_from_slice(col);
-            upper_ptr.push(upper_idx.len());
         }
         let upper = SymbolicSparseColMat::new_checked(n, n, upper_ptr, None, upper_idx);
         let symbolic = factorize_symbolic_cholesky(
