@@ -282,15 +282,23 @@ pub fn read_matrices(json: &Path) -> Result<Model, ImportError> {
 
     let dofs_path = at(&file.dofs);
     let labels = read_labels(&dofs_path, n)?;
-    let mut mats = Vec::with_capacity(file.parameters.len() + 2);
-    mats.push(match &file.k0 {
-        Some(k0) => read_matrix_market(&at(k0), n)?,
-        None => csc_from_lower(n, &[]),
-    });
-    for p in &file.parameters {
-        mats.push(read_matrix_market(&at(&p.file), n)?);
-    }
-    mats.push(read_matrix_market(&at(&file.mass), n)?);
+    // K0, every K_l and M, read side by side (each parsed in chunks as well); a failure is
+    // reported for the first bad file in this order.
+    let files: Vec<Option<PathBuf>> = std::iter::once(file.k0.as_deref().map(at))
+        .chain(file.parameters.iter().map(|p| Some(at(&p.file))))
+        .chain(std::iter::once(Some(at(&file.mass))))
+        .collect();
+    let read: Vec<Result<Csc, ImportError>> = {
+        use rayon::prelude::*;
+        files
+            .par_iter()
+            .map(|f| match f {
+                Some(path) => read_matrix_market(path, n),
+                None => Ok(csc_from_lower(n, &[])),
+            })
+            .collect()
+    };
+    let mats = read.into_iter().collect::<Result<Vec<Csc>, _>>()?;
 
     // A connection parameter with a stiffness stands for one connection of that stiffness
     // (named after it); the file's name stands for the members and springs.
@@ -585,19 +593,18 @@ pub fn read_matrix_market(path: &Path, n: usize) -> Result<Csc, ImportError> {
         Some((_, first)) => first.as_ptr() as usize - text.as_ptr() as usize,
         None => text.len(),
     };
-    let entries = parse_entries(path, &text, body_start, size_line + 1, n)?;
-    if entries.len() != nnz {
+    let chunks = parse_entries(path, &text, body_start, size_line + 1, n)?;
+    drop(text);
+    let count: usize = chunks.iter().map(Vec::len).sum();
+    if count != nnz {
         return Err(err(
             path,
-            format!(
-                "line {size_line} announces {nnz} entries, the file has {}",
-                entries.len()
-            ),
+            format!("line {size_line} announces {nnz} entries, the file has {count}"),
         ));
     }
     match symmetry {
         // One triangle, whichever; an off-diagonal pair given twice would count twice.
-        Symmetry::Symmetric => csc_from_one_triangle(n, &entries).map_err(|(r, c)| {
+        Symmetry::Symmetric => csc_from_one_triangle(n, &chunks).map_err(|(r, c)| {
             err(
                 path,
                 format!(
@@ -607,7 +614,10 @@ pub fn read_matrix_market(path: &Path, n: usize) -> Result<Csc, ImportError> {
                 ),
             )
         }),
-        Symmetry::General => Ok(csc_from_lower(n, &symmetric_lower(path, n, &entries)?)),
+        Symmetry::General => Ok(csc_from_lower(
+            n,
+            &symmetric_lower(path, n, &chunks.concat())?,
+        )),
     }
 }
 
@@ -625,7 +635,8 @@ enum BadLine {
 }
 
 /// The `(row, column, value)` entries (0-based) of a coordinate body starting at byte
-/// `body_start` of `text`, which is line `first_line` (1-based), in file order. Parsed in
+/// `body_start` of `text`, which is line `first_line` (1-based), in file order, in the
+/// chunks they were parsed in. Parsed in
 /// chunks split at line ends, one per worker thread and a few more (a 190 MB `K0` of a
 /// 100,000-DOF solid: 7.6 million entries); an error names the first bad line of the file.
 fn parse_entries(
@@ -634,7 +645,7 @@ fn parse_entries(
     body_start: usize,
     first_line: usize,
     n: usize,
-) -> Result<Vec<(usize, usize, f64)>, ImportError> {
+) -> Result<Vec<Entries>, ImportError> {
     use rayon::prelude::*;
     let body = &text[body_start..];
     let pieces = if body.len() < 1 << 20 {
@@ -657,11 +668,10 @@ fn parse_entries(
         .par_windows(2)
         .map(|w| parse_chunk(&body[w[0]..w[1]], n))
         .collect();
-    let mut entries =
-        Vec::with_capacity(parsed.iter().map(|p| p.as_ref().map_or(0, Vec::len)).sum());
+    let mut entries = Vec::with_capacity(parsed.len());
     for (c, chunk) in parsed.into_iter().enumerate() {
         match chunk {
-            Ok(e) => entries.extend(e),
+            Ok(e) => entries.push(e),
             Err((local, bad, t)) => {
                 let before = body.as_bytes()[..bounds[c]]
                     .iter()

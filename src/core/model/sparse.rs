@@ -103,25 +103,26 @@ pub fn csc_from_lower(n: usize, lower: &[(usize, usize, f64)]) -> Csc {
     csc_from_triplets(n, lower.iter().copied().chain(mirror))
 }
 
-/// The symmetric `n × n` matrix, both triangles stored, of entries that give one triangle
-/// of it, each entry in whichever triangle (a `symmetric` Matrix Market file). `Err` with
+/// The symmetric `n × n` matrix, both triangles stored, of entries (in chunks) that give one
+/// triangle of it, each entry in whichever triangle (a `symmetric` Matrix Market file). `Err` with
 /// the (row, column) of the lower triangle given twice. Counting sort by column, rows sorted
 /// within each; the upper triangle is then read off in order, without another sort.
 pub fn csc_from_one_triangle(
     n: usize,
-    entries: &[(usize, usize, f64)],
+    chunks: &[Vec<(usize, usize, f64)>],
 ) -> Result<Csc, (usize, usize)> {
     let lower = |&(i, j, v): &(usize, usize, f64)| if i >= j { (i, j, v) } else { (j, i, v) };
+    let entries = || chunks.iter().flatten();
     let mut start = vec![0usize; n + 1];
-    for e in entries {
+    for e in entries() {
         start[lower(e).1 + 1] += 1;
     }
     for j in 0..n {
         start[j + 1] += start[j];
     }
     let mut next = start.clone();
-    let mut low = vec![(0usize, 0.0f64); entries.len()];
-    for e in entries {
+    let mut low = vec![(0usize, 0.0f64); start[n]];
+    for e in entries() {
         let (i, j, v) = lower(e);
         low[next[j]] = (i, v);
         next[j] += 1;
