@@ -112,6 +112,15 @@ pub fn run(args: &ExportArgs) -> Result<()> {
                 if let Some(k) = model.connection_stiffness(l) {
                     e["stiffness"] = json!(k);
                 }
+                let elements: Vec<String> = model
+                    .parameter_elements(l)
+                    .into_iter()
+                    .filter(|(kind, _)| *kind != "matrix")
+                    .map(|(_, name)| name)
+                    .collect();
+                if !elements.is_empty() {
+                    e["elements"] = json!(elements);
+                }
                 if let Some(v) = p.lower {
                     e["lower"] = json!(v);
                 }

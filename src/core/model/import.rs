@@ -110,6 +110,11 @@ struct ParameterEntry {
     /// reported in the estimates as `k·θ`.
     #[serde(default)]
     stiffness: Option<f64>,
+    /// Names of what θ_l scales (connections, members or springs; default: the parameter
+    /// itself): a coarser model's parameter that scales all of them passes its value on
+    /// in a two-stage update (`--stage1-model`).
+    #[serde(default)]
+    elements: Vec<String>,
 }
 
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq, Deserialize)]
@@ -313,21 +318,37 @@ pub fn read_matrices(json: &Path) -> Result<Model, ImportError> {
             lower: p.lower,
             upper: p.upper,
             kind: match p.kind {
-                Kind::Connection => ParameterKind::Connections(
-                    p.stiffness
-                        .map(|k| {
-                            connections.push(Connection {
-                                name: p.name.clone(),
-                                member: p.file.clone(),
-                                node: String::new(),
-                                k,
-                                parameter: Some(l),
-                            });
-                            vec![connections.len() - 1]
-                        })
-                        .unwrap_or_default(),
-                ),
+                Kind::Connection => {
+                    // One connection per element (the parameter's name by default), of
+                    // the stated stiffness (NaN when none is stated: not reported).
+                    let names = if p.elements.is_empty() {
+                        std::slice::from_ref(&p.name)
+                    } else {
+                        p.elements.as_slice()
+                    };
+                    ParameterKind::Connections(
+                        names
+                            .iter()
+                            .map(|name| {
+                                connections.push(Connection {
+                                    name: name.clone(),
+                                    member: p.file.clone(),
+                                    node: String::new(),
+                                    k: p.stiffness.unwrap_or(f64::NAN),
+                                    parameter: Some(l),
+                                });
+                                connections.len() - 1
+                            })
+                            .collect(),
+                    )
+                }
+                Kind::Modulus if !p.elements.is_empty() => {
+                    ParameterKind::Modulus(p.elements.clone())
+                }
                 Kind::Modulus => ParameterKind::Modulus(vec![p.file.clone()]),
+                Kind::Spring if !p.elements.is_empty() => {
+                    ParameterKind::Springs(p.elements.clone())
+                }
                 Kind::Spring => ParameterKind::Springs(vec![p.file.clone()]),
                 Kind::Matrix => ParameterKind::Matrix(p.file.clone()),
             },

@@ -195,7 +195,7 @@ impl Model {
             return None;
         };
         let k = self.connections[*c.first()?].k;
-        c.iter().all(|&i| self.connections[i].k == k).then_some(k)
+        (k.is_finite() && c.iter().all(|&i| self.connections[i].k == k)).then_some(k)
     }
     /// The nominal parameter vector θ0.
     pub fn nominal_theta(&self) -> Vec<f64> {
@@ -203,7 +203,7 @@ impl Model {
     }
     /// What parameter `l` scales, as `(kind, name)` pairs: connection, member (modulus) or
     /// spring names.
-    fn parameter_elements(&self, l: usize) -> Vec<(&'static str, String)> {
+    pub fn parameter_elements(&self, l: usize) -> Vec<(&'static str, String)> {
         match &self.parameters[l].kind {
             ParameterKind::Connections(idx) => idx
                 .iter()
