@@ -391,7 +391,8 @@ fn shape_gap(a: faer::ColRef<'_, f64>, b: faer::ColRef<'_, f64>) -> f64 {
 /// lowest modes) and its shapes, massless DOFs included (cold: 1e-8 of the largest entry,
 /// an eigenvector's error being about its residual, ~1e-10, over the relative gap to the
 /// next mode); Nelson's derivatives match central differences; mode matching and the
-/// Bayesian MAP recover θ from noise-free data, and mode matching within 3σ from noisy.
+/// Bayesian MAP (dense and sparse paths) recover θ from noise-free data, and mode matching
+/// within 3σ from noisy.
 #[test]
 fn massless_dofs_are_condensed_exactly() {
     use boltwatch::core::modal::{DenseEigen, EigenSolver, Nelson, SparseEigen};
@@ -525,6 +526,24 @@ fn massless_dofs_are_condensed_exactly() {
             "Bayesian MAP θ{}: {} against {t}",
             l + 1,
             res.state.theta[l],
+        );
+    }
+    // The sparse path of the MAP (large models: sparse φ substeps) reaches the same θ.
+    let mut sparse_prob = BayesProblem::new(&model, &exact, &settings).unwrap();
+    sparse_prob.force_sparse();
+    let sparse_res = sparse_prob.solve(BayesSolver::Newton, &start, 200).unwrap();
+    assert!(sparse_res.converged);
+    for (l, (x, y)) in res
+        .state
+        .theta
+        .iter()
+        .zip(&sparse_res.state.theta)
+        .enumerate()
+    {
+        assert!(
+            ((x - y) / x).abs() < 1e-8,
+            "Bayesian MAP θ{}: dense {x}, sparse {y}",
+            l + 1
         );
     }
     let noisy = simulated_data(&model, &truth, 9, 0.01, 0.05, true, 3);
