@@ -10,6 +10,7 @@
 mod assemble;
 pub mod element;
 mod finish;
+pub mod frame3d;
 pub mod hex20;
 pub mod import;
 pub mod mesh;
