@@ -622,3 +622,45 @@ fn diagnosis_of_an_imported_model_names_the_hidden_effect() {
     );
     assert!(out.join("modes.svg").exists() && !out.join("structure.svg").exists());
 }
+
+/// The daemon's and replay's verdict on a model-inadequacy warning
+/// (`pipeline::verdict::diagnosis_alert`) for a structure whose model was imported from
+/// matrices: the diagnosis runs (it no longer fails as "not done") and names the hidden
+/// added mass at the file's location.
+#[test]
+fn the_warning_verdict_diagnoses_an_imported_model() {
+    use boltwatch::contract::{AlertDetail, Verdict};
+    use boltwatch::pipeline::DiagnoseRequest;
+    let json = imported_lab_json(false);
+    let model = boltwatch::io::model::load_model(&json).unwrap();
+    let data = json.with_file_name("warned.json");
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_boltwatch"))
+        .args(["simulate", "--model"])
+        .arg(&json)
+        .args(["--seed", "1", "--inject", "added-mass@B2.3=1", "-o"])
+        .arg(&data)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let set = boltwatch::commands::inputs::load_set(&model, &data).unwrap();
+    let req = DiagnoseRequest {
+        set,
+        epsilon: 2000.0,
+        epsilon_bound: 450.0,
+    };
+    boltwatch::core::sequential_numerics();
+    let alert = boltwatch::pipeline::verdict::diagnosis_alert(None, &model, 1.0, &req);
+    let AlertDetail::Inadequacy {
+        diagnosis: Some(Verdict::Found { named, .. }),
+        ..
+    } = &alert.detail
+    else {
+        panic!("no diagnosis found: {}", alert.message);
+    };
+    assert_eq!(
+        (named[0].effect.as_str(), named[0].location.as_str()),
+        ("added-mass", "B2.3"),
+        "{}",
+        alert.message
+    );
+}
