@@ -156,6 +156,7 @@ fn exported_frame_models_import_as_the_same_model() {
         "cantilever-case1",
         "cantilever-case2",
         "cantilever-truth",
+        "space-frame",
     ] {
         round_trip(name);
     }

@@ -16,4 +16,5 @@ mod replay_cli;
 mod sensitivity;
 mod solid;
 mod solid_four_bay;
+mod space_frame;
 mod tracker;

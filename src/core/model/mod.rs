@@ -15,6 +15,7 @@ pub mod hex20;
 pub mod import;
 pub mod mesh;
 pub mod solid;
+pub mod space;
 pub mod sparse;
 pub mod spec;
 
@@ -145,6 +146,10 @@ impl Model {
 
     /// Checks a parsed model file and assembles it.
     pub fn from_spec(spec: &ModelSpec) -> Result<Self, ModelError> {
+        if let Some(space) = &spec.space_frame {
+            spec.check_no_frame_entries()?;
+            return space::assemble(&spec.name, space, &spec.bayesian);
+        }
         match &spec.solid_frame {
             Some(solid) => {
                 spec.check_no_frame_entries()?;

@@ -57,6 +57,10 @@ pub struct ModelSpec {
     /// of the frame entries above (DESIGN §4.3).
     #[serde(default)]
     pub solid_frame: Option<SolidFrameSpec>,
+    /// A space frame (six DOF per node), instead of the plane-frame entries above
+    /// (issue 25, [`super::space`]).
+    #[serde(default)]
+    pub space_frame: Option<super::space::SpaceFrameSpec>,
     /// Defaults of the Bayesian MAP (14) for this model; command-line flags override them.
     #[serde(default)]
     pub bayesian: BayesSpec,
