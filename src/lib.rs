@@ -6,6 +6,7 @@ pub mod commands;
 pub mod contract;
 pub mod core;
 pub mod daemon;
+pub mod draw;
 pub mod io;
 pub mod pipeline;
 pub mod plot;

@@ -12,7 +12,9 @@ use indicatif::{ProgressBar, ProgressStyle};
 use super::{load_description, write_json};
 use crate::contract::diagnosis::DiagnosisDoc;
 use crate::core::diagnosis::{Diagnosis, DiagnosisOptions, diagnose};
+use crate::core::model::Model;
 use crate::core::model::spec::ModelSpec;
+use crate::draw::{Canvas, Geometry, change_color};
 use crate::plot::{Panel, Scale, Series, figure_svg};
 
 #[derive(Debug, clap::Args)]
@@ -86,18 +88,21 @@ pub fn run(args: &DiagnoseArgs) -> Result<()> {
     write_json(&args.out.join("diagnosis.json"), &out)?;
     std::fs::write(args.out.join("modes.svg"), modes_svg(&d))?;
     print!("{}", table(&d, seconds));
-    match description.spec() {
-        Some(spec) => {
-            std::fs::write(args.out.join("structure.svg"), structure_svg(spec, &d))?;
+    match description
+        .spec()
+        .and_then(|spec| structure_svg(spec, &model, &d))
+    {
+        Some(svg) => {
+            std::fs::write(args.out.join("structure.svg"), svg)?;
             println!(
                 "written: {}/{{diagnosis.json, modes.svg, structure.svg}}",
                 args.out.display()
             );
         }
-        // An imported model has no geometry to draw.
+        // An imported model has no geometry to draw, nor has the generated solid.
         None => println!(
-            "written: {}/{{diagnosis.json, modes.svg}} (no structure.svg: a model imported \
-             from matrices has no geometry)",
+            "written: {}/{{diagnosis.json, modes.svg}} (no structure.svg: the model has no \
+             frame geometry)",
             args.out.display()
         ),
     }
@@ -215,41 +220,13 @@ fn modes_svg(d: &Diagnosis) -> String {
     figure_svg(&[err, mac], 2)
 }
 
-/// Plane coordinates of a location: a node, or an interior mesh node `<member>.<k>`.
-fn position(spec: &ModelSpec, at: &str) -> Option<(f64, f64)> {
-    let node = |n: &str| spec.nodes.iter().find(|p| p.name == n).map(|p| (p.x, p.y));
-    if let Some(p) = node(at) {
-        return Some(p);
-    }
-    let (member, k) = at.rsplit_once('.')?;
-    let k: f64 = k.parse().ok()?;
-    let m = spec.members.iter().find(|m| m.name == member)?;
-    let ((x0, y0), (x1, y1)) = (node(&m.from)?, node(&m.to)?);
-    let t = k / m.elements as f64;
-    Some((x0 + t * (x1 - x0), y0 + t * (y1 - y0)))
-}
-
-/// The frame, each channel as a disc whose area is its shape residual before (red) and
-/// after (blue) the named effects, and the named effects marked.
-fn structure_svg(spec: &ModelSpec, d: &Diagnosis) -> String {
-    let pts: Vec<(f64, f64)> = spec.nodes.iter().map(|n| (n.x, n.y)).collect();
-    let (xmin, xmax) = pts.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |a, p| {
-        (a.0.min(p.0), a.1.max(p.0))
-    });
-    let (ymin, ymax) = pts.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |a, p| {
-        (a.0.min(p.1), a.1.max(p.1))
-    });
-    let (w, h, pad) = (640.0, 640.0, 70.0);
-    let span = (xmax - xmin).max(ymax - ymin).max(1e-9);
-    let sx = |x: f64| pad + (x - xmin) / span * (w - 2.0 * pad);
-    let sy = |y: f64| h - pad - (y - ymin) / span * (h - 2.0 * pad);
-    let mut s = String::new();
-    let _ = writeln!(
-        s,
-        r#"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" font-family="sans-serif" font-size="12">"#
-    );
-    let _ = writeln!(s, r#"<rect width="100%" height="100%" fill="white"/>"#);
-    let title = if d.named.is_empty() {
+/// The frame (in isometric projection when it is a space frame), each channel as a disc
+/// whose area is its shape residual before (red) and after (blue) the named effects, each
+/// connection coloured by how its parameter moves once the effects are added (the part
+/// of the discrepancy it had absorbed), and the named effects marked.
+fn structure_svg(spec: &ModelSpec, model: &Model, d: &Diagnosis) -> Option<String> {
+    let g = Geometry::of(spec)?;
+    let named = if d.named.is_empty() {
         "no missing effect named".to_string()
     } else {
         d.named
@@ -258,69 +235,62 @@ fn structure_svg(spec: &ModelSpec, d: &Diagnosis) -> String {
             .collect::<Vec<_>>()
             .join(", ")
     };
-    let _ = writeln!(
-        s,
-        r#"<text x="10" y="20" font-size="14">shape residual per channel (area): before red, after blue; named: {title}</text>"#
+    let (w, h) = (720.0, 640.0);
+    let mut c = Canvas::new(
+        &g,
+        w,
+        h,
+        &format!("shape residual per channel (area): before red, after blue; named: {named}"),
     );
-    for m in &spec.members {
-        if let (Some(a), Some(b)) = (position(spec, &m.from), position(spec, &m.to)) {
-            let _ = writeln!(
-                s,
-                r##"<line x1="{:.1}" y1="{:.1}" x2="{:.1}" y2="{:.1}" stroke="#444" stroke-width="3"/>"##,
-                sx(a.0),
-                sy(a.1),
-                sx(b.0),
-                sy(b.1)
-            );
-        }
-    }
+    c.text(
+        10.0,
+        38.0,
+        "connections: change of θ once the effects are added",
+    );
+    c.change_legend(w, 0.5);
+    c.connections(|mark| {
+        let l = parameter_of(model, &mark.model_names)?;
+        let (b, a) = (*d.before.theta.get(l)?, *d.after.theta.get(l)?);
+        let change = a / b - 1.0;
+        Some((
+            change_color(change, 0.5),
+            format!(": θ {b:.3} → {a:.3} ({:+.1} %)", 100.0 * change),
+        ))
+    });
     let max_r = d.before.channels.iter().map(|c| c.1).fold(1e-12, f64::max);
-    let channel_pos = |name: &str| {
-        spec.channels
-            .iter()
-            .find(|c| c.name == name)
-            .and_then(|c| position(spec, &c.at))
-    };
     for (loc, color, dx) in [(&d.before, "#c0392b", -4.0), (&d.after, "#2471a3", 4.0)] {
         for (name, r, _) in &loc.channels {
-            if let Some((x, y)) = channel_pos(name) {
-                let radius = 18.0 * (r / max_r).sqrt();
-                let _ = writeln!(
-                    s,
-                    r#"<circle cx="{:.1}" cy="{:.1}" r="{radius:.1}" fill="{color}" fill-opacity="0.35"><title>{name}: {r:.2}</title></circle>"#,
-                    sx(x) + dx,
-                    sy(y)
+            if let Some((_, p)) = g.channels.iter().find(|(n, _)| n == name) {
+                c.disc(
+                    *p,
+                    18.0 * (r / max_r).sqrt(),
+                    color,
+                    dx,
+                    &format!("{name}: {r:.2}"),
                 );
             }
         }
     }
     for n in &d.named {
-        let at = n.refit.location.split('.').next().unwrap_or_default();
-        let p = position(spec, &n.refit.location)
-            .or_else(|| position(spec, at))
-            .or_else(|| {
-                spec.members
-                    .iter()
-                    .find(|m| m.name == n.refit.location)
-                    .and_then(|m| {
-                        let (a, b) = (position(spec, &m.from)?, position(spec, &m.to)?);
-                        Some(((a.0 + b.0) / 2.0, (a.1 + b.1) / 2.0))
-                    })
-            });
-        if let Some((x, y)) = p {
-            let _ = writeln!(
-                s,
-                r##"<path d="M {x0:.1} {y0:.1} l 10 -10 m -10 10 l -10 -10 m 10 10 l -10 10 m 10 -10 l 10 10" stroke="#117a65" stroke-width="3"/><text x="{tx:.1}" y="{y0:.1}" fill="#117a65">{}@{} = {:.3e} {}</text>"##,
-                n.refit.effect,
-                n.refit.location,
-                n.refit.value,
-                n.refit.unit,
-                x0 = sx(x),
-                y0 = sy(y),
-                tx = sx(x) + 14.0
+        if let Some(p) = g.position(&n.refit.location) {
+            c.cross(
+                p,
+                "#117a65",
+                &format!(
+                    "{}@{} = {:.3e} {}",
+                    n.refit.effect, n.refit.location, n.refit.value, n.refit.unit
+                ),
             );
         }
     }
-    s.push_str("</svg>\n");
-    s
+    Some(c.finish())
+}
+
+/// The parameter that scales any of these model connections.
+pub fn parameter_of(model: &Model, connections: &[String]) -> Option<usize> {
+    model
+        .connections()
+        .iter()
+        .filter(|c| connections.contains(&c.name))
+        .find_map(|c| c.parameter)
 }

@@ -23,6 +23,11 @@ pub struct ReportArgs {
     /// Directory for the plots (created).
     #[arg(short, long)]
     pub out: PathBuf,
+    /// Model file of a structure in the recording (repeatable; matched by the model's
+    /// name): its frame is drawn too, each connection coloured by its change from baseline
+    /// in the last estimate (`DIR/<structure>-structure.svg`).
+    #[arg(long)]
+    pub model: Vec<PathBuf>,
 }
 
 /// Outputs of one structure, in file order.
@@ -86,7 +91,73 @@ pub fn run(args: &ReportArgs) -> Result<()> {
             println!("{}\n{}", svg.display(), png.display());
         }
     }
+    for path in &args.model {
+        let spec = crate::io::model::load_spec(path)?;
+        let Some(o) = by.get(&spec.name) else {
+            bail!(
+                "{}: structure `{}` has no estimates in {}",
+                path.display(),
+                spec.name,
+                args.recording.display()
+            );
+        };
+        let model = crate::core::model::Model::from_spec(&spec)
+            .with_context(|| format!("model file {}", path.display()))?;
+        let svg = structure_svg(&spec, &model, o).with_context(|| {
+            format!(
+                "{}: only frame models (plane or space) are drawn",
+                path.display()
+            )
+        })?;
+        let file = args.out.join(format!("{}-structure.svg", spec.name));
+        std::fs::write(&file, svg).with_context(|| format!("cannot write {}", file.display()))?;
+        println!("{}", file.display());
+    }
     Ok(())
+}
+
+/// The frame with each connection coloured by its parameter's change from baseline in the
+/// last estimate (the drift filter's level when it has one).
+fn structure_svg(
+    spec: &crate::core::model::spec::ModelSpec,
+    model: &crate::core::model::Model,
+    o: &Outputs,
+) -> Option<String> {
+    use crate::draw::{Canvas, Geometry, change_color};
+    let g = Geometry::of(spec)?;
+    let last = o.stiffness.last()?;
+    let params = last["parameters"].as_array()?;
+    let (w, h) = (720.0, 640.0);
+    let mut c = Canvas::new(
+        &g,
+        w,
+        h,
+        &format!(
+            "{}: change of each connection from baseline, {}",
+            spec.name,
+            last["time"].as_str().unwrap_or("last estimate")
+        ),
+    );
+    c.change_legend(w, 0.5);
+    c.connections(|mark| {
+        let l = super::diagnose::parameter_of(model, &mark.model_names)?;
+        let p = params
+            .iter()
+            .find(|p| p["name"] == model.parameters()[l].name)?;
+        let change = p["filtered"]["change"]
+            .as_f64()
+            .or_else(|| p["change"].as_f64())?;
+        Some((
+            change_color(change, 0.5),
+            format!(
+                ": {} {:+.1} % (θ {:.3})",
+                p["name"].as_str().unwrap_or_default(),
+                100.0 * change,
+                f(&p["theta"])
+            ),
+        ))
+    });
+    Some(c.finish())
 }
 
 /// A figure: its name, panels and columns.

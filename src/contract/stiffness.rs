@@ -85,6 +85,10 @@ pub struct ParameterEstimate {
     /// k_R·θ (N·m/rad), when the parameter's connections share one nominal k_R.
     pub stiffness: Option<f64>,
     pub filtered: FilteredLevel,
+    /// Why the parameter raises no loosening alert, when it does not (a connection the
+    /// data do not resolve on its own); absent otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alerts_off: Option<String>,
 }
 
 /// The drift filter's view of a parameter after this set.

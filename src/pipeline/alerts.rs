@@ -36,6 +36,11 @@ pub struct AlertThresholds {
     pub hysteresis: f64,
     /// Sets in the windowed χ² test of model inadequacy.
     pub inadequacy_window: u32,
+    /// A connection whose per-set σ (15) at commissioning exceeds this fraction of its
+    /// baseline gets no loosening alert: the data do not resolve it on its own (it moves
+    /// with correlated neighbours along a valley of ε), so its filtered level wanders and
+    /// would raise false alarms. Its estimates are still published, marked (`alerts_off`).
+    pub max_std: f64,
 }
 
 impl Default for AlertThresholds {
@@ -51,6 +56,7 @@ impl Default for AlertThresholds {
             persistence: 3,
             hysteresis: 0.05,
             inadequacy_window: 10,
+            max_std: 0.3,
         }
     }
 }
@@ -67,6 +73,9 @@ impl AlertThresholds {
         }
         if !(self.confidence.is_finite() && self.confidence > 0.5 && self.confidence < 1.0) {
             return Err(("confidence", "must be in (0.5, 1)".into()));
+        }
+        if !(self.max_std.is_finite() && self.max_std > 0.0) {
+            return Err(("max_std", "must be a number > 0".into()));
         }
         if self.inadequacy_window == 0 {
             return Err(("inadequacy_window", "must be at least 1".into()));

@@ -96,6 +96,9 @@ pub struct TrackerState {
     pub epsilon: Option<f64>,
     /// Baseline θ, once the commissioning sets are in.
     pub baseline: Option<Vec<f64>>,
+    /// Per-set σ (15) of each parameter on the set that completed the baseline.
+    #[serde(default)]
+    pub baseline_std: Option<Vec<f64>>,
     pub filters: Vec<DriftFilter>,
     pub loosening: Vec<LooseningState>,
     pub inadequacy: InadequacyState,
@@ -118,6 +121,30 @@ pub struct TrackerState {
 /// advanced publisher re-sends its cache to a restarted daemon): at least the cache of any
 /// publisher feeding it. An older re-delivery is rejected as out of order, never re-used.
 pub const DEDUP_WINDOW: usize = 1024;
+
+/// Per parameter, why it gets no loosening alert, if so: a connection whose per-set σ at
+/// commissioning is above `max_std` of its baseline ([`alerts::AlertThresholds::max_std`]).
+fn alerts_off(
+    thresholds: &alerts::AlertThresholds,
+    is_connection: &[bool],
+    st: &TrackerState,
+) -> Vec<Option<String>> {
+    let (Some(b), Some(s)) = (&st.baseline, &st.baseline_std) else {
+        return vec![None; is_connection.len()];
+    };
+    (0..is_connection.len())
+        .map(|l| {
+            let rel = s[l] / b[l].abs();
+            (is_connection[l] && !(rel <= thresholds.max_std)).then(|| {
+                format!(
+                    "per-set σ {rel:.2} of the baseline at commissioning (> max_std {}): the \
+                     data do not resolve this connection on its own",
+                    thresholds.max_std
+                )
+            })
+        })
+        .collect()
+}
 
 /// One structure's tracker.
 pub struct Tracker {
@@ -151,6 +178,7 @@ impl Tracker {
             covariance: None,
             epsilon: None,
             baseline: None,
+            baseline_std: None,
             filters: nominal
                 .iter()
                 .map(|&v| DriftFilter::new(v, cfg.drift))
@@ -407,12 +435,14 @@ impl Tracker {
                 && st.accepted - st.unconverged >= u64::from(self.cfg.baseline_sets)
             {
                 st.baseline = Some(st.filters.iter().map(|f| f.estimate().level).collect());
+                st.baseline_std = Some(std.clone());
             }
         } else {
             st.unconverged += 1;
         }
         // Estimate.
         let baseline = st.baseline.clone();
+        let alerts_off = alerts_off(&self.cfg.alerts, &self.is_connection, st);
         let parameters = self
             .model
             .parameters()
@@ -438,6 +468,7 @@ impl Tracker {
                         upper95: f.upper95,
                         change: b.map(|b| (f.level - b) / b),
                     },
+                    alerts_off: alerts_off[l].clone(),
                 }
             })
             .collect();
@@ -510,7 +541,7 @@ impl Tracker {
         }
         if converged && let Some(b) = &st.baseline {
             for (l, &b_l) in b.iter().enumerate() {
-                if !self.is_connection[l] {
+                if !self.is_connection[l] || alerts_off[l].is_some() {
                     continue;
                 }
                 let f = st.filters[l].estimate();
@@ -518,12 +549,25 @@ impl Tracker {
                     let name = &self.model.parameters()[l].name;
                     let drop = (b_l - f.level) / b_l;
                     let inadequate = st.inadequacy.raised;
+                    // The connections it scales, when they are not just its name (a
+                    // space frame's `<member>@<node>.<axis>`).
+                    let scaled: Vec<String> = self
+                        .model
+                        .parameter_elements(l)
+                        .into_iter()
+                        .map(|(_, n)| n)
+                        .collect();
+                    let label = if scaled.len() == 1 && scaled[0] == *name {
+                        name.clone()
+                    } else {
+                        format!("{name} ({})", scaled.join(", "))
+                    };
                     actions.push(alert(
                         Some(name.clone()),
                         AlertKind::Loosening,
                         tr.level,
                         Some(tr.confidence),
-                        loosening_message(name, tr.level, drop, tr.confidence, inadequate),
+                        loosening_message(&label, tr.level, drop, tr.confidence, inadequate),
                         AlertDetail::Loosening {
                             theta: f.level,
                             lower95: f.lower95,

@@ -15,7 +15,9 @@
 
 use super::DiagnosisError;
 use super::description::Description;
+use super::space;
 use crate::core::model::Model;
+use crate::core::model::sparse::diagonal;
 use crate::core::model::spec::{MassSpec, MaterialSpec, ModelSpec, SpringSpec};
 
 /// Which values of the internal coordinate are physical.
@@ -174,6 +176,9 @@ pub struct AddedMass;
 
 impl AddedMass {
     fn file_locations(spec: &ModelSpec) -> Vec<String> {
+        if let Some(sf) = &spec.space_frame {
+            return space::added_mass_locations(sf);
+        }
         let supported: Vec<&str> = spec.supports.iter().map(|s| s.node.as_str()).collect();
         spec.nodes
             .iter()
@@ -205,6 +210,10 @@ impl Effect for AddedMass {
     }
     fn apply(&self, d: &mut Description, location: &str, u: f64) -> Result<(), DiagnosisError> {
         match d {
+            Description::File(ModelSpec {
+                space_frame: Some(sf),
+                ..
+            }) => space::add_mass(sf, location, u)?,
             Description::File(spec) => {
                 if !Self::file_locations(spec).iter().any(|l| l == location) {
                     return Err(unknown(location, "a free node or interior mesh node"));
@@ -230,6 +239,10 @@ impl Effect for AddedMass {
     }
     fn step(&self, d: &Description, location: &str) -> f64 {
         match d {
+            Description::File(ModelSpec {
+                space_frame: Some(sf),
+                ..
+            }) => space::added_mass_step(sf),
             Description::File(spec) => {
                 // 1 % of the lightest joint; 50 g without joints.
                 let lightest = spec
@@ -275,18 +288,6 @@ fn matrix_locations(model: &Model) -> Vec<String> {
     } else {
         model.locations().iter().map(|l| l.name.clone()).collect()
     }
-}
-
-/// The diagonal of a matrix stored with both triangles.
-fn diagonal(a: &crate::core::model::Csc) -> Vec<f64> {
-    let s = a.symbolic();
-    (0..a.ncols())
-        .map(|j| {
-            s.row_idx_of_col_raw(j)
-                .binary_search(&j)
-                .map_or(0.0, |k| a.val_of_col(j)[k])
-        })
-        .collect()
 }
 
 /// A grounded spring on each DOF of a named location (or of one DOF named by its label) of
@@ -437,13 +438,19 @@ impl FileEffect for SupportFlexibility {
         "support-flexibility"
     }
     fn unit(&self, location: &str) -> &'static str {
-        if location.ends_with(".rz") {
+        if location
+            .rsplit_once('.')
+            .is_some_and(|(_, d)| d.starts_with('r'))
+        {
             "N·m/rad"
         } else {
             "N/m"
         }
     }
     fn locations(&self, spec: &ModelSpec) -> Vec<String> {
+        if let Some(sf) = &spec.space_frame {
+            return space::support_locations(sf);
+        }
         spec.supports
             .iter()
             .flat_map(|s| {
@@ -456,6 +463,9 @@ impl FileEffect for SupportFlexibility {
             .collect()
     }
     fn apply(&self, spec: &mut ModelSpec, location: &str, u: f64) -> Result<(), DiagnosisError> {
+        if let Some(sf) = &mut spec.space_frame {
+            return space::free_support(sf, location, u);
+        }
         let (node, dof) =
             Self::split(location).ok_or_else(|| unknown(location, "a support DOF (`BL.rz`)"))?;
         let s = spec
@@ -485,6 +495,9 @@ impl FileEffect for SupportFlexibility {
         Ok(())
     }
     fn step(&self, spec: &ModelSpec, location: &str) -> f64 {
+        if let Some(sf) = &spec.space_frame {
+            return space::support_step(sf, location);
+        }
         let (node, dof) = Self::split(location).unwrap_or(("", "rz"));
         // A spring 100 times stiffer than the members at the support.
         1.0 / (100.0 * Self::member_stiffness(spec, node, dof))
@@ -526,9 +539,15 @@ impl FileEffect for MemberStiffness {
         "relative"
     }
     fn locations(&self, spec: &ModelSpec) -> Vec<String> {
+        if let Some(sf) = &spec.space_frame {
+            return space::member_axis_locations(sf);
+        }
         spec.members.iter().map(|m| m.name.clone()).collect()
     }
     fn apply(&self, spec: &mut ModelSpec, location: &str, u: f64) -> Result<(), DiagnosisError> {
+        if let Some(sf) = &mut spec.space_frame {
+            return space::scale_member_axis(sf, location, u);
+        }
         let k = spec
             .members
             .iter()
@@ -567,9 +586,12 @@ impl FileEffect for Modulus {
         "relative"
     }
     fn locations(&self, spec: &ModelSpec) -> Vec<String> {
-        let covered = spec.parameters.iter().any(|p| {
-            !p.members.is_empty() && spec.members.iter().all(|m| p.members.contains(&m.name))
-        });
+        let covered = match &spec.space_frame {
+            Some(sf) => space::modulus_covered(sf),
+            None => spec.parameters.iter().any(|p| {
+                !p.members.is_empty() && spec.members.iter().all(|m| p.members.contains(&m.name))
+            }),
+        };
         if covered {
             Vec::new()
         } else {
@@ -591,6 +613,9 @@ impl FileEffect for Modulus {
         if u != 0.0 {
             for m in spec.materials.iter_mut() {
                 m.E *= 1.0 + u;
+            }
+            if let Some(sf) = &mut spec.space_frame {
+                space::scale_modulus(sf, u);
             }
         }
         Ok(())
@@ -614,9 +639,15 @@ impl FileEffect for JointInertia {
         "kg·m²"
     }
     fn locations(&self, spec: &ModelSpec) -> Vec<String> {
+        if let Some(sf) = &spec.space_frame {
+            return space::joint_inertia_locations(sf);
+        }
         spec.joints.iter().map(|j| j.node.clone()).collect()
     }
     fn apply(&self, spec: &mut ModelSpec, location: &str, u: f64) -> Result<(), DiagnosisError> {
+        if let Some(sf) = &mut spec.space_frame {
+            return space::add_joint_inertia(sf, location, u);
+        }
         let j = spec
             .joints
             .iter_mut()
@@ -631,6 +662,9 @@ impl FileEffect for JointInertia {
         Ok(())
     }
     fn step(&self, spec: &ModelSpec, location: &str) -> f64 {
+        if let Some(sf) = &spec.space_frame {
+            return space::joint_inertia_step(sf, location);
+        }
         spec.joints
             .iter()
             .find(|j| j.node == location)
@@ -663,9 +697,15 @@ impl FileEffect for AxialForce {
         "N"
     }
     fn locations(&self, spec: &ModelSpec) -> Vec<String> {
+        if let Some(sf) = &spec.space_frame {
+            return sf.members.iter().map(|m| m.name.clone()).collect();
+        }
         spec.members.iter().map(|m| m.name.clone()).collect()
     }
     fn apply(&self, spec: &mut ModelSpec, location: &str, u: f64) -> Result<(), DiagnosisError> {
+        if let Some(sf) = &mut spec.space_frame {
+            return space::add_axial_force(sf, location, u);
+        }
         let m = spec
             .members
             .iter_mut()
@@ -675,6 +715,9 @@ impl FileEffect for AxialForce {
         Ok(())
     }
     fn step(&self, spec: &ModelSpec, location: &str) -> f64 {
+        if let Some(sf) = &spec.space_frame {
+            return space::axial_force_step(sf, location);
+        }
         // 2 % of the member's Euler load π²EI/L².
         member_length_ei(spec, location).map_or(1.0, |(l, ei)| {
             0.02 * std::f64::consts::PI.powi(2) * ei / (l * l)
@@ -707,9 +750,15 @@ impl FileEffect for Splice {
         "N·m/rad"
     }
     fn locations(&self, spec: &ModelSpec) -> Vec<String> {
+        if let Some(sf) = &spec.space_frame {
+            return space::splice_locations(sf);
+        }
         interior_nodes(spec)
     }
     fn apply(&self, spec: &mut ModelSpec, location: &str, u: f64) -> Result<(), DiagnosisError> {
+        if let Some(sf) = &mut spec.space_frame {
+            return space::splice(sf, location, u);
+        }
         let (mi, k) = Self::split(spec, location)
             .ok_or_else(|| unknown(location, "an interior mesh node (`C2L.3`)"))?;
         if u <= 0.0 {
@@ -802,6 +851,9 @@ impl FileEffect for Splice {
         Ok(())
     }
     fn step(&self, spec: &ModelSpec, location: &str) -> f64 {
+        if let Some(sf) = &spec.space_frame {
+            return space::splice_step(sf, location);
+        }
         let member = location.rsplit_once('.').map_or(location, |x| x.0);
         // A spring 100 times the member's EI/L.
         member_length_ei(spec, member).map_or(1e-6, |(l, ei)| l / (100.0 * ei))

@@ -28,6 +28,7 @@ pub mod injection;
 mod refit;
 mod screen;
 mod search;
+mod space;
 
 use faer::Mat;
 

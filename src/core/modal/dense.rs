@@ -31,13 +31,10 @@ use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::ldlt::factor as ldlt_factor;
 use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
 use faer::linalg::solvers::{Llt, Solve};
-use faer::matrix_free::eigen::{
-    PartialEigenParams, partial_self_adjoint_eigen, partial_self_adjoint_eigen_scratch,
-};
 use faer::sparse::SparseColMatRef;
 use faer::sparse::linalg::cholesky::{SymbolicCholesky, SymbolicCholeskyRaw};
 use faer::sparse::linalg::solvers::{Llt as SparseLlt, SymbolicLlt};
-use faer::{Col, Mat, MatMut, Par, Side};
+use faer::{Mat, MatMut, Par, Side};
 
 use super::ModalError;
 use super::eigen::*;
@@ -404,47 +401,22 @@ struct RitzStep {
     m_phi: Mat<f64>,
 }
 
-/// faer's Krylov–Schur subspace is at least this large.
-const PARTIAL_MIN_SUBSPACE: usize = 64;
-
-/// The eigenvectors of the `q` largest eigenvalues of the symmetric positive definite `b`.
-/// When its subspace is small against the size (under a quarter), a Krylov–Schur iteration
-/// (faer's `partial_self_adjoint_eigen`) on `b` costs `O(n²)` per step instead of the
-/// `O(n³)` of a full decomposition; below that the full decomposition is faster (lab frame,
-/// 27 vectors of 142: 1.65 ms per solve with it, 2.22 ms with Krylov–Schur); its tolerance is loose because the block inverse iteration and
-/// Rayleigh–Ritz step that follow restore full accuracy. Falls back to the full
-/// decomposition if fewer than `q` pairs converge.
+/// The eigenvectors of the `q` largest eigenvalues of the symmetric positive definite `b`,
+/// by the tridiagonal reduction and the partial tridiagonal solve of [`PartialSymEvd`].
+///
+/// faer's matrix-free Krylov–Schur (`partial_self_adjoint_eigen`) was used here above a
+/// quarter of its subspace size: cheaper per solve, but on the space frame (596 DOF) at
+/// some θ its Lanczos reorthogonalization never ended. `b = L⁻¹ M L⁻ᵀ` has eigenvalues
+/// `1/λ` that fall off by many orders within a few dozen, so its Krylov space turns
+/// numerically invariant, the new vector's norm sinks to round-off, and the relative
+/// reorthogonalization test it loops on cannot be met. The full reduction is `O(n³)` but
+/// bounded: 0.03 s per `modes` of the space frame; above
+/// [`super::SPARSE_FROM_DOF`] the sparse solver takes over.
 fn top_eigenvectors(
     b: &Mat<f64>,
     q: usize,
     partial: &mut PartialSymEvd,
 ) -> Result<Mat<f64>, ModalError> {
-    let n = b.nrows();
-    // faer's Krylov–Schur needs its maximal subspace, max(64, 2q), smaller than n.
-    if 4 * PARTIAL_MIN_SUBSPACE.max(2 * q) < n {
-        let params = PartialEigenParams::default();
-        let mut mem = MemBuffer::new(partial_self_adjoint_eigen_scratch(b, q, Par::Seq, params));
-        let mut vecs = Mat::zeros(n, q);
-        let mut vals = vec![0.0; q];
-        // ‖b‖ ≤ trace(b) for a positive definite b.
-        let trace: f64 = (0..n).map(|i| b[(i, i)]).sum();
-        let v0 = Col::from_fn(n, |i| 1.0 + (i % 7) as f64 / 7.0);
-        let info = partial_self_adjoint_eigen(
-            vecs.as_mut(),
-            &mut vals,
-            b,
-            v0.as_ref(),
-            1e-12 * trace,
-            Par::Seq,
-            MemStack::new(&mut mem),
-            params,
-        );
-        if info.n_converged_eigen >= q {
-            let mut order: Vec<usize> = (0..q).collect();
-            order.sort_by(|&i, &j| vals[j].total_cmp(&vals[i]));
-            return Ok(Mat::from_fn(n, q, |i, j| vecs[(i, order[j])]));
-        }
-    }
     Ok(partial.largest(b, q)?.1)
 }
 

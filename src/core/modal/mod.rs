@@ -16,8 +16,9 @@ pub use mac::{mac, pair_modes};
 pub use sensitivity::Nelson;
 
 /// Models with at least this many DOFs get the sparse solver from [`solver_for`]. Below it
-/// the dense solver is as fast or faster from a cold start and is the reference.
-pub const SPARSE_FROM_DOF: usize = 2000;
+/// the dense solver is as fast or faster from a cold start and is the reference; its full
+/// tridiagonal reduction (`O(n³)`, [`dense`]'s `top_eigenvectors`) is kept below 1000.
+pub const SPARSE_FROM_DOF: usize = 1000;
 
 /// The eigen solver for a model, chosen by size: [`SparseEigen`] from
 /// [`SPARSE_FROM_DOF`] DOFs, [`DenseEigen`] below.

@@ -3,7 +3,7 @@
 use std::collections::HashMap;
 
 use super::element::{Section, frame_element, geometric_element};
-use super::finish::{check_positive, finish};
+use super::finish::{check_non_negative, check_positive, finish};
 use super::sparse::Accumulator;
 use super::spec::{MemberSpec, ModelSpec};
 use super::{Channel, Connection, Model, ModelError, Parameter, ParameterKind};
@@ -28,17 +28,6 @@ fn unknown(field: impl Into<String>, what: &'static str, name: &str) -> ModelErr
         field: field.into(),
         what,
         name: name.to_string(),
-    }
-}
-
-fn check_non_negative(field: String, v: f64) -> Result<(), ModelError> {
-    if v.is_finite() && v >= 0.0 {
-        Ok(())
-    } else {
-        Err(invalid(
-            field,
-            format!("must be a finite number ≥ 0, got {v}"),
-        ))
     }
 }
 

@@ -3,7 +3,7 @@
 
 use rayon::prelude::*;
 
-use super::sparse::{Csc, UnionPattern, csc_from_lower};
+use super::sparse::{Csc, UnionPattern, csc_from_lower, diagonal};
 use super::spec::BayesSpec;
 use super::{Channel, Connection, Model, ModelError, Parameter};
 
@@ -15,6 +15,18 @@ pub(super) fn check_positive(field: String, v: f64) -> Result<(), ModelError> {
         Err(ModelError::Invalid {
             field,
             reason: format!("must be a finite number > 0, got {v}"),
+        })
+    }
+}
+
+/// `v` must be a finite number ≥ 0; the error names `field`.
+pub(super) fn check_non_negative(field: String, v: f64) -> Result<(), ModelError> {
+    if v.is_finite() && v >= 0.0 {
+        Ok(())
+    } else {
+        Err(ModelError::Invalid {
+            field,
+            reason: format!("must be a finite number ≥ 0, got {v}"),
         })
     }
 }
@@ -100,18 +112,6 @@ pub(super) fn finish(
         reordered: Default::default(),
         bayesian,
     })
-}
-
-/// Diagonal of a symmetric matrix.
-fn diagonal(a: &Csc) -> Vec<f64> {
-    let s = a.symbolic();
-    (0..a.ncols())
-        .map(|j| {
-            s.row_idx_of_col_raw(j)
-                .binary_search(&j)
-                .map_or(0.0, |k| a.val_of_col(j)[k])
-        })
-        .collect()
 }
 
 /// The DOFs that carry no mass (a zero diagonal of `M`; lumped-mass models leave rotations

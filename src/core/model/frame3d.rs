@@ -113,6 +113,25 @@ pub fn local_mass(s: &Section3, l: f64) -> Mat12 {
     m
 }
 
+/// The geometric stiffness in local axes of an axial force `n` (N, tension positive) for
+/// length `l`: the cubic-Hermite `n/(30 l)·[36, 3l, −36, 3l; …]` in each bending plane
+/// (Przemieniecki §6.3; the plane frames' [`super::element`] uses the same block). The
+/// Wagner torsion term `n J_p/(A l)` is left out, as in the plane frames: it matters only
+/// near torsional buckling, far from the forces a monitored frame carries.
+pub fn local_geometric(n: f64, l: f64) -> Mat12 {
+    let mut k = Mat12::zeros();
+    let b = [
+        [36.0, 3.0 * l, -36.0, 3.0 * l],
+        [3.0 * l, 4.0 * l * l, -3.0 * l, -l * l],
+        [-36.0, -3.0 * l, 36.0, -3.0 * l],
+        [3.0 * l, -l * l, -3.0 * l, 4.0 * l * l],
+    ];
+    let c = n / (30.0 * l);
+    add_bending(&mut k, V, RZ, c, &b, false);
+    add_bending(&mut k, W, RY, c, &b, true);
+    k
+}
+
 /// Why local axes cannot be formed.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum AxesError {
@@ -184,6 +203,18 @@ pub fn global_matrices(
         to_global(&local_stiffness(s, l), &r),
         to_global(&local_mass(s, l), &r),
     ))
+}
+
+/// The geometric stiffness of an axial force `n` in the member from `a` to `b`, in global
+/// axes.
+pub fn global_geometric(
+    n: f64,
+    a: Vector3<f64>,
+    b: Vector3<f64>,
+    reference: Vector3<f64>,
+) -> Result<Mat12, AxesError> {
+    let r = local_axes(a, b, reference)?;
+    Ok(to_global(&local_geometric(n, (b - a).norm()), &r))
 }
 
 #[cfg(test)]

@@ -1,8 +1,9 @@
-//! Space frames (issue 25, work in progress): nodes with six DOF, members of
-//! [`super::frame3d`] elements, bolted connections with a rotational spring about any of a
-//! member end's local axes, assembled primally (paper (3)–(4)): every element DOF is a
-//! linear combination of the model's DOFs (a member end's rotation about a rigid axis is
-//! the joint's rotation projected on that axis; about a sprung axis, a DOF of its own).
+//! Space frames (issue 25): nodes with six DOF, members of [`super::frame3d`] elements,
+//! rigid joints with mass, rotary inertia and member-end offsets, bolted connections with a
+//! rotational spring about any of a member end's local axes, assembled primally (paper
+//! (3)–(4)): every element DOF is a linear combination of the model's DOFs (an offset end's
+//! translation is the joint's `u + ω × r`; a member end's rotation about a rigid axis is the
+//! joint's rotation projected on that axis, about a sprung axis a DOF of its own).
 //!
 //! ```toml
 //! [space_frame]
@@ -10,18 +11,25 @@
 //! sections = [{ name = "beam", A = 8e-4, Iy = 2.67e-8, Iz = 1.07e-7, J = 7.33e-8 }]
 //! nodes = [{ name = "J1A1", x = 0.0, y = 0.6, z = 0.0 }]
 //! members = [{ name = "BX11a", from = "J1A1", to = "J1B1", section = "beam",
-//!              material = "steel", elements = 4 }]            # orientation = [0, 1, 0]
-//! joints = [{ node = "J1A1", mass = 2.0 }]                     # inertia = [Ix, Iy, Iz]
-//! supports = [{ node = "A1" }]                                 # fix = ["x", "ry"]
+//!              material = "steel", elements = 4 }]  # orientation = [0, 1, 0], axial_force
+//! joints = [{ node = "J1A1", mass = 2.0 }]           # inertia = [Ix, Iy, Iz], size = 0.04
+//! supports = [{ node = "A1" }]                       # fix = ["x", "ry"]; absent: all six
+//! restrain = ["z", "rx", "ry"]                       # fixed at every node (optional)
 //! connections = [{ member = "BX11a", node = "J1A1", strong = 5e4, weak = 2e4 }]
+//! masses = [{ at = "BX11a.2", mass = 0.5 }]          # inertia = [Ix, Iy, Iz]
+//! springs = [{ name = "pad", a = "A1", dof = "y", k = 1e7 }]  # b = "<location>"
 //! parameters = [{ name = "BX11a@J1A1", connections = ["BX11a@J1A1.strong"] }]
 //! channels = [{ name = "BX11a.2.y", at = "BX11a.2", dir = "y" }]
 //! ```
+//! Locations (`at`, `a`, `b`) are nodes or mesh nodes `<member>.<k>` counted from the
+//! member's `from` end (`<member>.0` is the offset end itself). Parameters scale connection
+//! axes (`<connection>.<torsion|weak|strong>`, the connection named `<member>@<node>`
+//! unless it has a `name`), members (E) or springs.
 
 use nalgebra::Vector3;
 use serde::Deserialize;
 
-use super::frame3d::{Section3, default_reference, global_matrices, local_axes};
+use super::frame3d::{Section3, default_reference, global_geometric, global_matrices, local_axes};
 use super::sparse::{Csc, csc_from_triplets};
 use super::spec::{BayesSpec, ChannelSpec, ParameterSpec, SupportSpec};
 use super::{Channel, Connection, Model, ModelError, Parameter, ParameterKind};
@@ -64,6 +72,22 @@ pub struct Node3 {
 
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
+pub struct Joint3 {
+    pub node: String,
+    /// kg, on each translation.
+    #[serde(default)]
+    pub mass: f64,
+    /// Rotary inertia about global x, y, z (kg·m²).
+    #[serde(default)]
+    pub inertia: [f64; 3],
+    /// Member-end offset (m): member ends at this joint stop `size` short of its centre
+    /// along their axes and move with it as a rigid body (u_end = u + ω × r).
+    #[serde(default)]
+    pub size: f64,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Member3 {
     pub name: String,
     pub from: String,
@@ -73,30 +97,65 @@ pub struct Member3 {
     pub elements: usize,
     /// Reference vector fixing local y ([`default_reference`] when absent).
     pub orientation: Option<[f64; 3]>,
-}
-
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Joint3 {
-    pub node: String,
-    /// kg, on each translation.
+    /// Axial force (N, tension positive): its geometric stiffness enters K0.
     #[serde(default)]
-    pub mass: f64,
-    /// Rotary inertia about global x, y, z (kg·m²).
-    #[serde(default)]
-    pub inertia: [f64; 3],
+    pub axial_force: f64,
 }
 
 /// A bolted member end: a rotational spring (N·m/rad) about each named local axis of the
-/// member (`torsion` = x, `weak` = y, `strong` = z); the other axes are rigid.
+/// member (`torsion` = x, `weak` = y, `strong` = z); the other axes are rigid. The axes are
+/// named `<name>.<axis>`, `name` defaulting to `<member>@<node>`.
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Connection3 {
+    pub name: Option<String>,
     pub member: String,
     pub node: String,
     pub torsion: Option<f64>,
     pub weak: Option<f64>,
     pub strong: Option<f64>,
+}
+
+impl Connection3 {
+    /// The connection's name, `<member>@<node>` unless given.
+    pub fn name(&self) -> String {
+        self.name
+            .clone()
+            .unwrap_or_else(|| format!("{}@{}", self.member, self.node))
+    }
+
+    /// The names of its sprung axes with their stiffness.
+    pub fn axes(&self) -> impl Iterator<Item = (String, f64)> + '_ {
+        let name = self.name();
+        [self.torsion, self.weak, self.strong]
+            .into_iter()
+            .zip(AXES)
+            .filter_map(move |(k, ax)| k.map(|k| (format!("{name}.{ax}"), k)))
+    }
+}
+
+/// A lumped mass (kg, on the three translations) and rotary inertia (kg·m² about global x,
+/// y, z) at a location: a node, or `<member>.<k>` (a mesh node, from the `from` end).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Mass3 {
+    pub at: String,
+    #[serde(default)]
+    pub mass: f64,
+    #[serde(default)]
+    pub inertia: [f64; 3],
+}
+
+/// A discrete spring along one global DOF (`x` … `rz`) between locations `a` and `b`, or
+/// from `a` to the ground (an elastic support) when `b` is absent; N/m or N·m/rad.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Spring3 {
+    pub name: String,
+    pub a: String,
+    pub b: Option<String>,
+    pub dof: String,
+    pub k: f64,
 }
 
 /// `[space_frame]` in a model file.
@@ -111,16 +170,86 @@ pub struct SpaceFrameSpec {
     pub joints: Vec<Joint3>,
     #[serde(default)]
     pub supports: Vec<SupportSpec>,
+    /// DOFs fixed at every node and mesh node (`["z", "rx", "ry"]`: a frame braced out of
+    /// its x–y plane, analysed in-plane).
+    #[serde(default)]
+    pub restrain: Vec<String>,
     #[serde(default)]
     pub connections: Vec<Connection3>,
+    #[serde(default)]
+    pub masses: Vec<Mass3>,
+    #[serde(default)]
+    pub springs: Vec<Spring3>,
     #[serde(default)]
     pub parameters: Vec<ParameterSpec>,
     #[serde(default)]
     pub channels: Vec<ChannelSpec>,
 }
 
-const DOF_NAMES: [&str; 6] = ["x", "y", "z", "rx", "ry", "rz"];
-const AXES: [&str; 3] = ["torsion", "weak", "strong"];
+impl SpaceFrameSpec {
+    /// The position of a node.
+    pub fn position(&self, node: &str) -> Option<Vector3<f64>> {
+        self.nodes
+            .iter()
+            .find(|n| n.name == node)
+            .map(|n| Vector3::new(n.x, n.y, n.z))
+    }
+
+    /// The section properties of a member, from its material and section entries.
+    pub fn section_of(&self, m: &Member3) -> Result<Section3, ModelError> {
+        fn find<'a, T>(
+            list: &'a [T],
+            name: &str,
+            field: &str,
+            what: &'static str,
+            key: impl Fn(&T) -> &str,
+        ) -> Result<&'a T, ModelError> {
+            list.iter()
+                .find(|x| key(x) == name)
+                .ok_or_else(|| ModelError::Unknown {
+                    field: field.to_string(),
+                    what,
+                    name: name.to_string(),
+                })
+        }
+        let field = format!("members.{}", m.name);
+        let mat = find(&self.materials, &m.material, &field, "material", |x| {
+            &x.name
+        })?;
+        let sec = find(&self.sections, &m.section, &field, "section", |x| &x.name)?;
+        Ok(Section3 {
+            E: mat.E,
+            G: mat.E / (2.0 * (1.0 + mat.nu)),
+            rho: mat.rho,
+            A: sec.A,
+            Iy: sec.Iy,
+            Iz: sec.Iz,
+            J: sec.J,
+            Jp: sec.Jp.unwrap_or(sec.Iy + sec.Iz),
+        })
+    }
+
+    /// The joint-centre offset of member ends at `node` (m).
+    pub fn joint_size(&self, node: &str) -> f64 {
+        self.joints
+            .iter()
+            .find(|j| j.node == node)
+            .map_or(0.0, |j| j.size)
+    }
+
+    /// Every connection axis name with its stiffness, in file order.
+    pub fn connection_axes(&self) -> Vec<(String, f64)> {
+        self.connections
+            .iter()
+            .flat_map(Connection3::axes)
+            .collect()
+    }
+}
+
+/// The DOF names of a node, in order.
+pub const DOF_NAMES: [&str; 6] = ["x", "y", "z", "rx", "ry", "rz"];
+/// The local axes a connection spring can act about: x, y, z of the member.
+pub const AXES: [&str; 3] = ["torsion", "weak", "strong"];
 
 fn invalid(field: impl Into<String>, reason: impl Into<String>) -> ModelError {
     ModelError::Invalid {
@@ -161,6 +290,30 @@ fn scatter(out: &mut Vec<(usize, usize, f64)>, combos: &[Combo; 12], a: &super::
     }
 }
 
+/// Adds `v ℓ ℓᵀ` for the combination `ℓ` into `out` (a spring or a lumped mass).
+fn scatter_rank_one(out: &mut Vec<(usize, usize, f64)>, ell: &[(usize, f64)], v: f64) {
+    for &(i, ci) in ell {
+        for &(j, cj) in ell {
+            out.push((i, j, v * ci * cj));
+        }
+    }
+}
+
+/// `c += w · other`.
+fn add_scaled(c: &mut Combo, other: &[(usize, f64)], w: f64) {
+    if w != 0.0 {
+        c.extend(other.iter().map(|&(d, x)| (d, w * x)));
+    }
+}
+
+/// The index of a DOF name (`x` … `rz`).
+fn dof_index(field: &str, d: &str) -> Result<usize, ModelError> {
+    DOF_NAMES
+        .iter()
+        .position(|x| *x == d)
+        .ok_or_else(|| invalid(field, format!("unknown DOF `{d}` (x, y, z, rx, ry, rz)")))
+}
+
 /// Checks and assembles a `[space_frame]` model.
 pub fn assemble(name: &str, s: &SpaceFrameSpec, bayesian: &BayesSpec) -> Result<Model, ModelError> {
     let node_index = |n: &str, field: &str| {
@@ -175,20 +328,18 @@ pub fn assemble(name: &str, s: &SpaceFrameSpec, bayesian: &BayesSpec) -> Result<
     };
     check(s)?;
     // Node DOFs (fixed ones excluded).
-    let mut fixed = vec![[false; 6]; s.nodes.len()];
+    let mut restrained = [false; 6];
+    for d in &s.restrain {
+        restrained[dof_index("restrain", d)?] = true;
+    }
+    let mut fixed = vec![restrained; s.nodes.len()];
     for sup in &s.supports {
         let k = node_index(&sup.node, "supports.node")?;
         match &sup.fix {
             None => fixed[k] = [true; 6],
             Some(list) => {
                 for d in list {
-                    let c = DOF_NAMES.iter().position(|x| x == d).ok_or_else(|| {
-                        invalid(
-                            format!("supports.{}.fix", sup.node),
-                            format!("unknown DOF `{d}` (x, y, z, rx, ry, rz)"),
-                        )
-                    })?;
-                    fixed[k][c] = true;
+                    fixed[k][dof_index(&format!("supports.{}.fix", sup.node), d)?] = true;
                 }
             }
         }
@@ -199,56 +350,39 @@ pub fn assemble(name: &str, s: &SpaceFrameSpec, bayesian: &BayesSpec) -> Result<
         .iter()
         .enumerate()
         .map(|(k, n)| {
-            let mut d = [None; 6];
-            for c in 0..6 {
-                if !fixed[k][c] {
-                    d[c] = Some(dofs.add(format!("{}.{}", n.name, DOF_NAMES[c])));
-                }
-            }
-            d
+            std::array::from_fn(|c| {
+                (!fixed[k][c]).then(|| dofs.add(format!("{}.{}", n.name, DOF_NAMES[c])))
+            })
         })
         .collect();
+    let node_combo = |k: usize| -> [Combo; 6] {
+        std::array::from_fn(|c| node_dofs[k][c].map(|d| vec![(d, 1.0)]).unwrap_or_default())
+    };
+    // Every location: the nodes, and each member's mesh nodes `<member>.<k>`.
+    let mut locations: std::collections::HashMap<String, [Combo; 6]> = s
+        .nodes
+        .iter()
+        .enumerate()
+        .map(|(k, n)| (n.name.clone(), node_combo(k)))
+        .collect();
     let p = s.parameters.len();
+    let slot_of = |item: &str, list: fn(&ParameterSpec) -> &Vec<String>| {
+        s.parameters
+            .iter()
+            .position(|q| list(q).iter().any(|x| x == item))
+            .map_or(0, |l| l + 1)
+    };
     // K0, K_1..K_p, M as triplets.
     let mut mats: Vec<Vec<(usize, usize, f64)>> = vec![Vec::new(); p + 2];
-    let mut connections: Vec<Connection> = Vec::new();
-    // Connection-axis name → (matrix slot for its spring, triplet list built later).
-    let mut springs: Vec<(String, Combo, f64)> = Vec::new();
-    let mut member_nodes: Vec<(String, Vec<[Option<usize>; 6]>)> = Vec::new();
+    // Connection axes: name, member, node, ℓ (spring elongation), k.
+    let mut springs: Vec<(String, String, String, Combo, f64)> = Vec::new();
     for m in &s.members {
         let field = format!("members.{}", m.name);
         let (a, b) = (node_index(&m.from, &field)?, node_index(&m.to, &field)?);
-        let mat = s
-            .materials
-            .iter()
-            .find(|x| x.name == m.material)
-            .ok_or_else(|| ModelError::Unknown {
-                field: field.clone(),
-                what: "material",
-                name: m.material.clone(),
-            })?;
-        let sec = s
-            .sections
-            .iter()
-            .find(|x| x.name == m.section)
-            .ok_or_else(|| ModelError::Unknown {
-                field: field.clone(),
-                what: "section",
-                name: m.section.clone(),
-            })?;
         if m.elements == 0 {
             return Err(invalid(format!("{field}.elements"), "must be at least 1"));
         }
-        let section = Section3 {
-            E: mat.E,
-            G: mat.E / (2.0 * (1.0 + mat.nu)),
-            rho: mat.rho,
-            A: sec.A,
-            Iy: sec.Iy,
-            Iz: sec.Iz,
-            J: sec.J,
-            Jp: sec.Jp.unwrap_or(sec.Iy + sec.Iz),
-        };
+        let section = s.section_of(m)?;
         let pos = |k: usize| Vector3::new(s.nodes[k].x, s.nodes[k].y, s.nodes[k].z);
         let (pa, pb) = (pos(a), pos(b));
         let reference = m.orientation.map_or_else(
@@ -257,19 +391,43 @@ pub fn assemble(name: &str, s: &SpaceFrameSpec, bayesian: &BayesSpec) -> Result<
         );
         let r = local_axes(pa, pb, reference)
             .map_err(|e| invalid(format!("{field}.orientation"), e.to_string()))?;
+        let len = (pb - pa).norm();
+        let e = (pb - pa) / len;
+        let (sa, sb) = (s.joint_size(&m.from), s.joint_size(&m.to));
+        if len <= sa + sb {
+            return Err(invalid(
+                field,
+                format!("length {len} m is not longer than the joint offsets {sa} + {sb} m"),
+            ));
+        }
         // The slot of this member's stiffness: the parameter scaling its E, or K0.
-        let slot = s
-            .parameters
-            .iter()
-            .position(|q| q.members.contains(&m.name))
-            .map_or(0, |l| l + 1);
-        // Mesh nodes: the ends are the model nodes; interior ones get six DOFs.
+        let slot = slot_of(&m.name, |q| &q.members);
+        // Mesh nodes: the ends follow their joints; interior ones get six DOFs.
         let mut mesh: Vec<[Combo; 6]> = Vec::with_capacity(m.elements + 1);
-        let node_combo = |k: usize| -> [Combo; 6] {
-            std::array::from_fn(|c| node_dofs[k][c].map(|d| vec![(d, 1.0)]).unwrap_or_default())
-        };
-        for (end, k) in [(0usize, a), (m.elements, b)] {
+        for (end, k, offset) in [(0usize, a, e * sa), (m.elements, b, -e * sb)] {
+            // Interior mesh nodes first, then the far end (the plane frames' DOF order).
+            if end > 0 {
+                for i in 1..m.elements {
+                    let interior: [Combo; 6] = std::array::from_fn(|c| {
+                        if restrained[c] {
+                            Vec::new()
+                        } else {
+                            vec![(dofs.add(format!("{}.{i}.{}", m.name, DOF_NAMES[c])), 1.0)]
+                        }
+                    });
+                    locations.insert(format!("{}.{i}", m.name), interior.clone());
+                    mesh.push(interior);
+                }
+            }
             let mut combo = node_combo(k);
+            // The end sits `offset` from the joint's centre: u_end = u + ω × offset.
+            let w = [combo[3].clone(), combo[4].clone(), combo[5].clone()];
+            add_scaled(&mut combo[0], &w[1], offset.z);
+            add_scaled(&mut combo[0], &w[2], -offset.y);
+            add_scaled(&mut combo[1], &w[2], offset.x);
+            add_scaled(&mut combo[1], &w[0], -offset.z);
+            add_scaled(&mut combo[2], &w[0], offset.y);
+            add_scaled(&mut combo[2], &w[1], -offset.x);
             if let Some(conn) = s
                 .connections
                 .iter()
@@ -277,94 +435,107 @@ pub fn assemble(name: &str, s: &SpaceFrameSpec, bayesian: &BayesSpec) -> Result<
             {
                 // Rotations: Σ_a e_a ρ_a, ρ_a the joint's rotation about e_a (rigid) or
                 // the end's own DOF (sprung).
-                let joint_rot: [Combo; 3] = [combo[3].clone(), combo[4].clone(), combo[5].clone()];
                 let mut rot: [Combo; 3] = Default::default();
                 for (ax, kval) in [conn.torsion, conn.weak, conn.strong].iter().enumerate() {
-                    let e = r.row(ax);
-                    let rho_a: Combo = match kval {
-                        None => (0..3)
-                            .flat_map(|c| joint_rot[c].iter().map(move |&(d, w)| (d, w * e[c])))
-                            .collect(),
+                    let axis = r.row(ax);
+                    let mut along: Combo = Vec::new();
+                    for c in 0..3 {
+                        add_scaled(&mut along, &w[c], axis[c]);
+                    }
+                    let rho_a = match kval {
+                        None => along,
                         Some(kv) => {
-                            let cname = format!("{}@{}.{}", m.name, s.nodes[k].name, AXES[ax]);
+                            let cname = format!("{}.{}", conn.name(), AXES[ax]);
                             let own = dofs.add(cname.clone());
-                            // Spring: ½ k (ρ_own − e·θ_joint)².
+                            // Spring: ½ k (ρ_own − e·ω_joint)².
                             let mut diff: Combo = vec![(own, 1.0)];
-                            for c in 0..3 {
-                                diff.extend(joint_rot[c].iter().map(|&(d, w)| (d, -w * e[c])));
-                            }
-                            springs.push((cname, diff, *kv));
+                            add_scaled(&mut diff, &along, -1.0);
+                            springs.push((cname, m.name.clone(), conn.node.clone(), diff, *kv));
                             vec![(own, 1.0)]
                         }
                     };
                     for c in 0..3 {
-                        rot[c].extend(rho_a.iter().map(|&(d, w)| (d, w * e[c])));
+                        add_scaled(&mut rot[c], &rho_a, axis[c]);
                     }
                 }
-                combo[3] = rot[0].clone();
-                combo[4] = rot[1].clone();
-                combo[5] = rot[2].clone();
+                let [rx, ry, rz] = rot;
+                [combo[3], combo[4], combo[5]] = [rx, ry, rz];
             }
-            if end == 0 {
-                mesh.push(combo);
-            } else {
-                for i in 1..m.elements {
-                    mesh.push(std::array::from_fn(|c| {
-                        vec![(dofs.add(format!("{}.{i}.{}", m.name, DOF_NAMES[c])), 1.0)]
-                    }));
-                }
-                mesh.push(combo);
-            }
+            locations.insert(format!("{}.{end}", m.name), combo.clone());
+            mesh.push(combo);
         }
-        let step = (pb - pa) / m.elements as f64;
-        for e in 0..m.elements {
-            let p0 = pa + step * e as f64;
-            let (ke, me) = global_matrices(&section, p0, p0 + step, reference)
+        let (p0, p1) = (pa + e * sa, pb - e * sb);
+        let step = (p1 - p0) / m.elements as f64;
+        for el in 0..m.elements {
+            let q0 = p0 + step * el as f64;
+            let (ke, me) = global_matrices(&section, q0, q0 + step, reference)
                 .map_err(|err| invalid(field.clone(), err.to_string()))?;
-            let combos: [Combo; 12] = std::array::from_fn(|i| mesh[e + i / 6][i % 6].clone());
+            let combos: [Combo; 12] = std::array::from_fn(|i| mesh[el + i / 6][i % 6].clone());
             scatter(&mut mats[slot], &combos, &ke);
             scatter(&mut mats[p + 1], &combos, &me);
-        }
-        member_nodes.push((
-            m.name.clone(),
-            mesh.iter()
-                .map(|n| {
-                    std::array::from_fn(|c| {
-                        (n[c].len() == 1 && n[c][0].1 == 1.0).then(|| n[c][0].0)
-                    })
-                })
-                .collect(),
-        ));
-    }
-    // Springs into K0 or their parameter's K_l.
-    for (cname, diff, kv) in &springs {
-        let slot = s
-            .parameters
-            .iter()
-            .position(|q| q.connections.contains(cname))
-            .map_or(0, |l| l + 1);
-        for &(i, ci) in diff {
-            for &(j, cj) in diff {
-                mats[slot].push((i, j, kv * ci * cj));
+            if m.axial_force != 0.0 {
+                let kg = global_geometric(m.axial_force, q0, q0 + step, reference)
+                    .map_err(|err| invalid(field.clone(), err.to_string()))?;
+                scatter(&mut mats[0], &combos, &kg);
             }
         }
+    }
+    let location = |field: String, at: &str| -> Result<&[Combo; 6], ModelError> {
+        locations.get(at).ok_or_else(|| ModelError::Unknown {
+            field,
+            what: "location (node or <member>.<k>)",
+            name: at.to_string(),
+        })
+    };
+    // Connection springs into K0 or their parameter's K_l, paper (2).
+    let mut connections: Vec<Connection> = Vec::with_capacity(springs.len());
+    for (cname, member, node, diff, kv) in springs {
+        let slot = slot_of(&cname, |q| &q.connections);
+        scatter_rank_one(&mut mats[slot], &diff, kv);
         connections.push(Connection {
-            name: cname.clone(),
-            member: cname.split('@').next().unwrap_or_default().to_string(),
-            node: String::new(),
-            k: *kv,
+            name: cname,
+            member,
+            node,
+            k: kv,
             parameter: (slot > 0).then(|| slot - 1),
         });
     }
-    // Joint masses and inertias.
+    // Joint masses and inertias, at the joint's centre.
     for j in &s.joints {
         let k = node_index(&j.node, "joints.node")?;
+        super::finish::check_non_negative(format!("joints.{}.mass", j.node), j.mass)?;
+        super::finish::check_non_negative(format!("joints.{}.size", j.node), j.size)?;
         for (c, dof) in node_dofs[k].iter().enumerate() {
             let v = if c < 3 { j.mass } else { j.inertia[c - 3] };
+            super::finish::check_non_negative(format!("joints.{}.inertia", j.node), v)?;
             if let (Some(d), true) = (dof, v != 0.0) {
                 mats[p + 1].push((*d, *d, v));
             }
         }
+    }
+    // Lumped masses.
+    for (i, ms) in s.masses.iter().enumerate() {
+        let field = format!("masses[{i}]");
+        let c = location(format!("{field}.at"), &ms.at)?;
+        for (d, ell) in c.iter().enumerate() {
+            let v = if d < 3 { ms.mass } else { ms.inertia[d - 3] };
+            super::finish::check_non_negative(format!("{field}.{}", DOF_NAMES[d]), v)?;
+            scatter_rank_one(&mut mats[p + 1], ell, v);
+        }
+    }
+    // Discrete springs (elastic supports when grounded).
+    for (i, sp) in s.springs.iter().enumerate() {
+        let field = format!("springs[{i}] `{}`", sp.name);
+        super::finish::check_positive(format!("{field}.k"), sp.k)?;
+        let d = dof_index(&format!("{field}.dof"), &sp.dof)?;
+        let mut ell = location(format!("{field}.a"), &sp.a)?[d].clone();
+        if let Some(b) = &sp.b {
+            add_scaled(&mut ell, &location(format!("{field}.b"), b)?[d], -1.0);
+        }
+        if ell.is_empty() {
+            return Err(invalid(field, "both ends are fixed"));
+        }
+        scatter_rank_one(&mut mats[slot_of(&sp.name, |q| &q.springs)], &ell, sp.k);
     }
     let parameters = s
         .parameters
@@ -374,7 +545,11 @@ pub fn assemble(name: &str, s: &SpaceFrameSpec, bayesian: &BayesSpec) -> Result<
             nominal: q.nominal.unwrap_or(1.0),
             lower: None,
             upper: None,
-            kind: if q.members.is_empty() {
+            kind: if !q.members.is_empty() {
+                ParameterKind::Modulus(q.members.clone())
+            } else if !q.springs.is_empty() {
+                ParameterKind::Springs(q.springs.clone())
+            } else {
                 ParameterKind::Connections(
                     connections
                         .iter()
@@ -383,8 +558,6 @@ pub fn assemble(name: &str, s: &SpaceFrameSpec, bayesian: &BayesSpec) -> Result<
                         .map(|(i, _)| i)
                         .collect(),
                 )
-            } else {
-                ParameterKind::Modulus(q.members.clone())
             },
         })
         .collect();
@@ -392,31 +565,15 @@ pub fn assemble(name: &str, s: &SpaceFrameSpec, bayesian: &BayesSpec) -> Result<
         .channels
         .iter()
         .map(|ch| {
-            let c = DOF_NAMES.iter().position(|x| *x == ch.dir).ok_or_else(|| {
-                invalid(
-                    format!("channels.{}.dir", ch.name),
-                    format!("unknown `{}`", ch.dir),
-                )
-            })?;
-            let dof = match ch.at.rsplit_once('.') {
-                Some((member, k)) if k.parse::<usize>().is_ok() => member_nodes
-                    .iter()
-                    .find(|(n, _)| n == member)
-                    .and_then(|(_, nodes)| nodes.get(k.parse::<usize>().ok()?))
-                    .and_then(|n| n[c]),
-                _ => node_index(&ch.at, "channels.at")
-                    .ok()
-                    .and_then(|k| node_dofs[k][c]),
+            let field = format!("channels.{}", ch.name);
+            let c = dof_index(&format!("{field}.dir"), &ch.dir)?;
+            let dofs = location(format!("{field}.at"), &ch.at)?[c].clone();
+            if dofs.is_empty() {
+                return Err(invalid(format!("{field}.at"), "reads only fixed DOFs"));
             }
-            .ok_or_else(|| {
-                invalid(
-                    format!("channels.{}.at", ch.name),
-                    "not a free DOF of the model",
-                )
-            })?;
             Ok(Channel {
                 name: ch.name.clone(),
-                dofs: vec![(dof, 1.0)],
+                dofs,
             })
         })
         .collect::<Result<Vec<_>, ModelError>>()?;
@@ -461,9 +618,19 @@ fn check(s: &SpaceFrameSpec) -> Result<(), ModelError> {
     unique("section", s.sections.iter().map(|m| m.name.as_str()))?;
     unique("parameter", s.parameters.iter().map(|m| m.name.as_str()))?;
     unique("channel", s.channels.iter().map(|m| m.name.as_str()))?;
+    unique("spring", s.springs.iter().map(|m| m.name.as_str()))?;
+    unique(
+        "connection at member end",
+        s.connections
+            .iter()
+            .map(|c| format!("{}@{}", c.member, c.node))
+            .collect::<Vec<_>>()
+            .iter()
+            .map(String::as_str),
+    )?;
     let mut axes = Vec::new();
     for c in &s.connections {
-        let field = format!("connections.{}@{}", c.member, c.node);
+        let field = format!("connections.{}", c.name());
         let m = s
             .members
             .iter()
@@ -479,49 +646,55 @@ fn check(s: &SpaceFrameSpec) -> Result<(), ModelError> {
                 format!("member {} has no end at {}", m.name, c.node),
             ));
         }
-        let ks = [c.torsion, c.weak, c.strong];
-        if ks.iter().all(Option::is_none) {
+        if c.axes().next().is_none() {
             return Err(invalid(
                 field,
                 "no spring (give torsion, weak and/or strong)",
             ));
         }
-        for (ax, k) in ks.iter().enumerate() {
-            if let Some(k) = k {
-                super::finish::check_positive(format!("{field}.{}", AXES[ax]), *k)?;
-                axes.push(format!("{}@{}.{}", c.member, c.node, AXES[ax]));
-            }
+        for (axis, k) in c.axes() {
+            super::finish::check_positive(format!("connections.{axis}"), k)?;
+            axes.push(axis);
         }
     }
     unique("connection", axes.iter().map(String::as_str))?;
     let mut used = std::collections::HashSet::new();
     for q in &s.parameters {
         let field = format!("parameters.{}", q.name);
-        if q.connections.is_empty() == q.members.is_empty() || !q.springs.is_empty() {
+        let lists = [&q.connections, &q.members, &q.springs];
+        if lists.iter().filter(|l| !l.is_empty()).count() != 1 {
             return Err(invalid(
                 field,
-                "give either connections (`<member>@<node>.<axis>`) or members",
+                "give one list: connections (`<member>@<node>.<axis>`), members or springs",
             ));
         }
-        for c in &q.connections {
-            if !axes.contains(c) {
+        let known: [(&Vec<String>, &'static str, Vec<&str>); 3] = [
+            (
+                &q.connections,
+                "connection axis",
+                axes.iter().map(String::as_str).collect(),
+            ),
+            (
+                &q.members,
+                "member",
+                s.members.iter().map(|x| x.name.as_str()).collect(),
+            ),
+            (
+                &q.springs,
+                "spring",
+                s.springs.iter().map(|x| x.name.as_str()).collect(),
+            ),
+        ];
+        for (list, what, names) in known {
+            if let Some(e) = list.iter().find(|e| !names.contains(&e.as_str())) {
                 return Err(ModelError::Unknown {
                     field: field.clone(),
-                    what: "connection axis",
-                    name: c.clone(),
+                    what,
+                    name: e.clone(),
                 });
             }
         }
-        for m in &q.members {
-            if !s.members.iter().any(|x| &x.name == m) {
-                return Err(ModelError::Unknown {
-                    field: field.clone(),
-                    what: "member",
-                    name: m.clone(),
-                });
-            }
-        }
-        for e in q.connections.iter().chain(&q.members) {
+        for e in lists.into_iter().flatten() {
             if !used.insert(e.as_str()) {
                 return Err(invalid(
                     field,

@@ -622,6 +622,18 @@ impl Reordered {
     }
 }
 
+/// The diagonal of a matrix with sorted row indices (zero where nothing is stored).
+pub fn diagonal(a: &Csc) -> Vec<f64> {
+    let s = a.symbolic();
+    (0..a.ncols())
+        .map(|j| {
+            s.row_idx_of_col_raw(j)
+                .binary_search(&j)
+                .map_or(0.0, |k| a.val_of_col(j)[k])
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
