@@ -135,7 +135,7 @@ fn alerts_off(
     (0..is_connection.len())
         .map(|l| {
             let rel = s[l] / b[l].abs();
-            (is_connection[l] && !(rel <= thresholds.max_std)).then(|| {
+            (is_connection[l] && (rel.is_nan() || rel > thresholds.max_std)).then(|| {
                 format!(
                     "per-set σ {rel:.2} of the baseline at commissioning (> max_std {}): the \
                      data do not resolve this connection on its own",
