@@ -249,13 +249,18 @@ fn structure_svg(spec: &ModelSpec, model: &Model, d: &Diagnosis) -> Option<Strin
     );
     c.change_legend(w, 0.5);
     c.connections(|mark| {
-        let l = parameter_of(model, &mark.model_names)?;
-        let (b, a) = (*d.before.theta.get(l)?, *d.after.theta.get(l)?);
-        let change = a / b - 1.0;
-        Some((
-            change_color(change, 0.5),
-            format!(": θ {b:.3} → {a:.3} ({:+.1} %)", 100.0 * change),
-        ))
+        let changes: Vec<(String, f64, String)> = parameters_of(model, &mark.model_names)
+            .into_iter()
+            .filter_map(|l| {
+                let (b, a) = (*d.before.theta.get(l)?, *d.after.theta.get(l)?);
+                Some((
+                    model.parameters()[l].name.clone(),
+                    a / b - 1.0,
+                    format!(" (θ {b:.3} → {a:.3})"),
+                ))
+            })
+            .collect();
+        largest_change(&changes)
     });
     let max_r = d.before.channels.iter().map(|c| c.1).fold(1e-12, f64::max);
     for (loc, color, dx) in [(&d.before, "#c0392b", -4.0), (&d.after, "#2471a3", 4.0)] {
@@ -286,11 +291,32 @@ fn structure_svg(spec: &ModelSpec, model: &Model, d: &Diagnosis) -> Option<Strin
     Some(c.finish())
 }
 
-/// The parameter that scales any of these model connections.
-pub fn parameter_of(model: &Model, connections: &[String]) -> Option<usize> {
-    model
+/// The parameters that scale these model connections, each once, in model order.
+pub fn parameters_of(model: &Model, connections: &[String]) -> Vec<usize> {
+    let mut out: Vec<usize> = model
         .connections()
         .iter()
         .filter(|c| connections.contains(&c.name))
-        .find_map(|c| c.parameter)
+        .filter_map(|c| c.parameter)
+        .collect();
+    out.sort_unstable();
+    out.dedup();
+    out
+}
+
+/// Of a connection's parameters and their changes, the largest change (its colour) and a
+/// line per parameter (its tooltip).
+pub fn largest_change(changes: &[(String, f64, String)]) -> Option<(String, String)> {
+    let worst = changes
+        .iter()
+        .map(|c| c.1)
+        .fold(None, |a: Option<f64>, c| match a {
+            Some(x) if x.abs() >= c.abs() => Some(x),
+            _ => Some(c),
+        })?;
+    let lines: Vec<String> = changes
+        .iter()
+        .map(|(name, change, note)| format!("\n{name}: {:+.1} %{note}", 100.0 * change))
+        .collect();
+    Some((change_color(worst, 0.5), lines.concat()))
 }

@@ -123,7 +123,7 @@ fn structure_svg(
     model: &crate::core::model::Model,
     o: &Outputs,
 ) -> Option<String> {
-    use crate::draw::{Canvas, Geometry, change_color};
+    use crate::draw::{Canvas, Geometry};
     let g = Geometry::of(spec)?;
     let last = o.stiffness.last()?;
     let params = last["parameters"].as_array()?;
@@ -140,23 +140,29 @@ fn structure_svg(
     );
     c.change_legend(w, 0.5);
     c.connections(|mark| {
-        let l = super::diagnose::parameter_of(model, &mark.model_names)?;
-        let p = params
-            .iter()
-            .find(|p| p["name"] == model.parameters()[l].name)?;
-        let change = p["filtered"]["change"]
-            .as_f64()
-            .or_else(|| p["change"].as_f64())?;
-        Some((
-            change_color(change, 0.5),
-            format!(
-                ": {} {:+.1} % (θ {:.3})",
-                p["name"].as_str().unwrap_or_default(),
-                100.0 * change,
-                f(&p["theta"])
-            ),
-        ))
+        let changes: Vec<(String, f64, String)> =
+            super::diagnose::parameters_of(model, &mark.model_names)
+                .into_iter()
+                .filter_map(|l| {
+                    let name = &model.parameters()[l].name;
+                    let p = params.iter().find(|p| p["name"] == *name)?;
+                    // A connection the data do not resolve is drawn hollow.
+                    if p.get("alerts_off").is_some() {
+                        return None;
+                    }
+                    let change = p["filtered"]["change"]
+                        .as_f64()
+                        .or_else(|| p["change"].as_f64())?;
+                    Some((name.clone(), change, format!(" (θ {:.3})", f(&p["theta"]))))
+                })
+                .collect();
+        super::diagnose::largest_change(&changes)
     });
+    c.text(
+        10.0,
+        38.0,
+        "hollow: no estimate, or not resolved by the data on its own (alerts off)",
+    );
     Some(c.finish())
 }
 
