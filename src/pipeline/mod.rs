@@ -96,9 +96,14 @@ pub struct TrackerState {
     pub epsilon: Option<f64>,
     /// Baseline θ, once the commissioning sets are in.
     pub baseline: Option<Vec<f64>>,
-    /// Per-set σ (15) of each parameter on the set that completed the baseline.
+    /// Mean per-set σ (15) of each parameter over the commissioning sets.
     #[serde(default)]
     pub baseline_std: Option<Vec<f64>>,
+    /// Σσ of each parameter and the number of sets summed, until the baseline is in.
+    #[serde(default)]
+    pub commissioning_std_sum: Vec<f64>,
+    #[serde(default)]
+    pub commissioning_sets: u64,
     pub filters: Vec<DriftFilter>,
     pub loosening: Vec<LooseningState>,
     pub inadequacy: InadequacyState,
@@ -122,8 +127,8 @@ pub struct TrackerState {
 /// publisher feeding it. An older re-delivery is rejected as out of order, never re-used.
 pub const DEDUP_WINDOW: usize = 1024;
 
-/// Per parameter, why it gets no loosening alert, if so: a connection whose per-set σ at
-/// commissioning is above `max_std` of its baseline ([`alerts::AlertThresholds::max_std`]).
+/// Per parameter, why it gets no loosening alert, if so: a connection whose mean per-set σ
+/// over the commissioning sets is above `max_std` of its baseline ([`alerts::AlertThresholds::max_std`]).
 fn alerts_off(
     thresholds: &alerts::AlertThresholds,
     is_connection: &[bool],
@@ -137,8 +142,8 @@ fn alerts_off(
             let rel = s[l] / b[l].abs();
             (is_connection[l] && (rel.is_nan() || rel > thresholds.max_std)).then(|| {
                 format!(
-                    "per-set σ {rel:.2} of the baseline at commissioning (> max_std {}): the \
-                     data do not resolve this connection on its own",
+                    "mean per-set σ {rel:.2} of the baseline over the commissioning sets \
+                     (> max_std {}): the data do not resolve this connection on its own",
                     thresholds.max_std
                 )
             })
@@ -179,6 +184,8 @@ impl Tracker {
             epsilon: None,
             baseline: None,
             baseline_std: None,
+            commissioning_std_sum: Vec::new(),
+            commissioning_sets: 0,
             filters: nominal
                 .iter()
                 .map(|&v| DriftFilter::new(v, cfg.drift))
@@ -431,11 +438,23 @@ impl Tracker {
             for (l, f) in st.filters.iter_mut().enumerate() {
                 f.observe(days, res.theta[l], std[l] * std[l]);
             }
-            if st.baseline.is_none()
-                && st.accepted - st.unconverged >= u64::from(self.cfg.baseline_sets)
-            {
-                st.baseline = Some(st.filters.iter().map(|f| f.estimate().level).collect());
-                st.baseline_std = Some(std.clone());
+            if st.baseline.is_none() {
+                // Σσ over the commissioning sets (restarted from this set when a
+                // checkpoint of an older version left it empty).
+                if st.commissioning_std_sum.len() != std.len() {
+                    st.commissioning_std_sum = vec![0.0; std.len()];
+                    st.commissioning_sets = 0;
+                }
+                for (sum, s) in st.commissioning_std_sum.iter_mut().zip(&std) {
+                    *sum += s;
+                }
+                st.commissioning_sets += 1;
+                if st.accepted - st.unconverged >= u64::from(self.cfg.baseline_sets) {
+                    st.baseline = Some(st.filters.iter().map(|f| f.estimate().level).collect());
+                    let n = st.commissioning_sets as f64;
+                    st.baseline_std =
+                        Some(st.commissioning_std_sum.iter().map(|s| s / n).collect());
+                }
             }
         } else {
             st.unconverged += 1;
