@@ -327,18 +327,8 @@ pub fn splice(sf: &mut SpaceFrameSpec, location: &str, u: f64) -> Result<(), Dia
             p.members.push(b.clone());
         }
     }
-    let prefix = format!("{}.", m.name);
     let relocate = |at: &mut String| {
-        if let Some(j) = at
-            .strip_prefix(&prefix)
-            .and_then(|j| j.parse::<usize>().ok())
-        {
-            *at = match j.cmp(&k) {
-                std::cmp::Ordering::Less => format!("{a}.{j}"),
-                std::cmp::Ordering::Equal => node.clone(),
-                std::cmp::Ordering::Greater => format!("{b}.{}", j - k),
-            };
-        }
+        super::effects::relocate_split(at, &m.name, k, (&a, &node, &b));
     };
     for c in sf.channels.iter_mut() {
         relocate(&mut c.at);
