@@ -1,7 +1,8 @@
 //! The space frame's speed (issue 25): one full mode-matching update from θ0 = 1 (15
 //! noisy modes, 1 % frequency CoV, 5 % shape NSD; 596 DOF, 30 parameters, 78 channels),
 //! and one warm-started tracker update per modal set (the healthy scenario with 15 modes,
-//! commissioned outside the timing).
+//! commissioned outside the timing); and the two eigen solvers on the space frame and the
+//! lab frame, the measurement behind `SPARSE_FROM_DOF`.
 
 use std::hint::black_box;
 use std::time::{Duration, Instant};
@@ -15,10 +16,11 @@ use boltwatch::scenario::Scenario;
 use criterion::{Criterion, criterion_group, criterion_main};
 
 fn spec() -> ModelSpec {
-    let path = format!(
-        "{}/config/models/space-frame.toml",
-        env!("CARGO_MANIFEST_DIR")
-    );
+    model_spec("space-frame")
+}
+
+fn model_spec(name: &str) -> ModelSpec {
+    let path = format!("{}/config/models/{name}.toml", env!("CARGO_MANIFEST_DIR"));
     toml::from_str(&std::fs::read_to_string(path).expect("shipped model")).expect("model parses")
 }
 
@@ -111,5 +113,27 @@ fn bench_warm_update(c: &mut Criterion) {
     );
 }
 
-criterion_group!(benches, bench_full_update, bench_warm_update);
+/// One full solve of the lowest modes by each solver: the dense one's `O(n³)` reduction
+/// against the sparse shift-invert Krylov solver, on the 142-DOF lab frame (12 modes) and
+/// the 596-DOF space frame (15 modes).
+fn bench_solvers(c: &mut Criterion) {
+    use boltwatch::core::modal::{DenseEigen, EigenSolver, SparseEigen};
+    boltwatch::core::sequential_numerics();
+    let mut group = c.benchmark_group("eigen_solve");
+    for (name, modes) in [("lab-frame", 12), ("space-frame", 15)] {
+        let model = Model::from_spec(&model_spec(name)).unwrap();
+        let theta = model.nominal_theta();
+        let mut dense = DenseEigen::new(&model).unwrap();
+        let mut sparse = SparseEigen::new(&model).unwrap();
+        group.bench_function(format!("{name}_{}_dof_dense", model.n_dof()), |b| {
+            b.iter(|| dense.solve(black_box(&model), &theta, modes).unwrap())
+        });
+        group.bench_function(format!("{name}_{}_dof_sparse", model.n_dof()), |b| {
+            b.iter(|| sparse.solve(black_box(&model), &theta, modes).unwrap())
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(benches, bench_solvers, bench_full_update, bench_warm_update);
 criterion_main!(benches);

@@ -721,3 +721,51 @@ fn the_3d_diagnosis_catalogue_applies_at_every_kind_of_location() {
         .to_string();
     assert!(e.contains("BZ2B.9.strong"), "{e}");
 }
+
+/// `diagnose` on the space frame (~400 candidates of the 3D catalogue): a 0.6 kg mass at
+/// mid-span of the second-storey beam BX21a (16 % of the beam's own mass), 15 noisy modes.
+/// The mass splits the cluster of the identical beams' local modes near 157 Hz (MAC of the
+/// nominal fit down to 0.46), so its first-order screening column is undefined (the step
+/// changes the mode pairing) and the candidate is scored at finite values instead. Named
+/// alone, at the right node, its value within 3σ, ε brought to a few per cent of before.
+#[test]
+fn a_hidden_mass_on_the_space_frame_is_named() {
+    use boltwatch::core::diagnosis::injection::Injection;
+    use boltwatch::core::diagnosis::{Description, DiagnosisOptions, diagnose};
+    use boltwatch::core::simulate::{Noise, simulated_measured_data};
+    boltwatch::core::sequential_numerics();
+    let nominal = Description::File(spec());
+    let inj = Injection::parse("added-mass@BX21a.2=0.6").unwrap();
+    let mut truth = nominal.clone();
+    inj.apply(&mut truth).unwrap();
+    let model = truth.build().unwrap();
+    let noise = Noise {
+        frequency_cov: 0.01,
+        shape_nsd: 0.05,
+    };
+    let data = simulated_measured_data(&model, &model.nominal_theta(), 15, noise, true, 7).unwrap();
+    let started = std::time::Instant::now();
+    let d = diagnose(&nominal, &data, &DiagnosisOptions::default(), |_, _, _| {}).unwrap();
+    let named: Vec<String> = d
+        .named
+        .iter()
+        .map(|n| {
+            format!(
+                "{}@{} = {:.4} ± {:.4} {}",
+                n.refit.effect, n.refit.location, n.refit.value, n.refit.std, n.refit.unit
+            )
+        })
+        .collect();
+    println!(
+        "{} candidates; named {named:?}; ε {:.1} -> {:.1}; {:.1} s",
+        d.n_candidates,
+        d.before.epsilon,
+        d.after.epsilon,
+        started.elapsed().as_secs_f64()
+    );
+    assert_eq!(d.named.len(), 1, "{named:?}");
+    let n = &d.named[0].refit;
+    assert_eq!((n.effect, n.location.as_str()), ("added-mass", "BX21a.2"));
+    assert!((n.value - 0.6).abs() <= 3.0 * n.std, "{named:?}");
+    assert!(d.after.epsilon <= 0.1 * d.before.epsilon);
+}

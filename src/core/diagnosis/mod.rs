@@ -9,7 +9,10 @@
 //!    candidate's residual column `g = ∂r/∂u` (finite difference at `u = 0`, at the fitted θ)
 //!    is projected off the span of the model's own Jacobian `J`; the reduction of ε that the
 //!    one extra parameter explains to first order is `(g⊥ᵀr)² / g⊥ᵀg⊥` (the score). A bolt
-//!    stiffness change is inside the model class and so explains nothing here.
+//!    stiffness change is inside the model class and so explains nothing here. A candidate
+//!    whose step changes the mode pairing (it moves a measured mode across a close
+//!    neighbour) has no first-order column; it is scored by the same reduction at a few
+//!    finite values of `u`, θ corrected to first order (`screen::probe`).
 //! 3. **Refit** the best few with the full nonlinear update: ε is minimized over the effect's
 //!    value with θ refitted at every value (the profile `ε(u) = min_θ ε(θ, u)`, by a bracketed
 //!    golden-section search), and its standard deviation is the Laplace one, `σ_u² = 2/ε''`
@@ -114,7 +117,8 @@ pub struct Candidate {
     pub location: String,
     /// ε reduction explained to first order beyond the model's own parameters.
     pub score: f64,
-    /// The first-order value of the internal coordinate.
+    /// The first-order value of the internal coordinate (for a probed candidate, the probe
+    /// value that scored best): where the refit starts.
     pub u_linear: f64,
 }
 

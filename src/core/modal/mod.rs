@@ -17,8 +17,12 @@ pub use sensitivity::Nelson;
 
 /// Models with at least this many DOFs get the sparse solver from [`solver_for`]. Below it
 /// the dense solver is as fast or faster from a cold start and is the reference; its full
-/// tridiagonal reduction (`O(n³)`, [`dense`]'s `top_eigenvectors`) is kept below 1000.
-pub const SPARSE_FROM_DOF: usize = 1000;
+/// tridiagonal reduction (`O(n³)`, [`dense`]'s `top_eigenvectors`) is kept below 500.
+/// Measured (`cargo bench --bench space_frame -- eigen_solve`, one full solve): the 142-DOF
+/// lab frame, 12 modes, dense 1.08 ms against sparse 1.75 ms; the 596-DOF space frame, 15
+/// modes, dense 27.2 ms against sparse 12.7 ms (whole mode-matching updates of the space
+/// frame 2–4× faster). Every planar bundled model stays dense.
+pub const SPARSE_FROM_DOF: usize = 500;
 
 /// The eigen solver for a model, chosen by size: [`SparseEigen`] from
 /// [`SPARSE_FROM_DOF`] DOFs, [`DenseEigen`] below.
