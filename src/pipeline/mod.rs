@@ -258,6 +258,7 @@ impl Tracker {
             sigma_tol: Some(cfg.step_tolerance),
             eps_tol: None,
             final_step: FinalStep::Extrapolate,
+            bounds: cfg.bounds_pair(),
             ..Default::default()
         };
         Ok(Self {

@@ -228,32 +228,62 @@ fn a_broken_matrices_directory_is_refused_naming_the_file() {
     }
 }
 
-/// `replay` with the lab frame imported from its exported matrices writes the same bytes
-/// as with its TOML model file (estimates, cross-checks and the file itself).
+/// `replay` with a bundled model imported from its exported matrices writes the same bytes
+/// as with its TOML model file (estimates, cross-checks and the file itself): the lab frame
+/// over 150 healthy sets (cross-checks every 50), the simplified lab frame, a cantilever and
+/// the space frame (sparse solver) over 40 (cross-checks every 20).
 #[test]
-fn replay_with_the_imported_lab_frame_gives_the_same_bytes() {
-    let dir = tmp_dir("import-replay");
-    let toml = format!(
-        "{}/config/models/lab-frame.toml",
-        env!("CARGO_MANIFEST_DIR")
-    );
+fn replay_with_imported_models_gives_the_same_bytes() {
+    for (name, structure, sets, modes, every) in [
+        ("lab-frame", "lab-frame", 150, 9, "50"),
+        ("lab-frame-simplified", "lab-frame-simplified", 40, 9, "20"),
+        ("cantilever-case1", "cantilever", 40, 3, "20"),
+        ("space-frame", "space-frame", 40, 15, "20"),
+    ] {
+        replay_bytes(name, structure, sets, modes, every);
+    }
+}
+
+/// Replays a healthy scenario of the bundled model `name` (structure `structure`) with
+/// its TOML file and with its exported matrices, and compares the outputs.
+fn replay_bytes(name: &str, structure: &str, sets: usize, modes: usize, crosscheck_every: &str) {
+    use boltwatch::commands::scenario::{ScenarioArgs, run as scenario};
+    boltwatch::core::sequential_numerics();
+    let dir = tmp_dir(&format!("import-replay-{name}"));
+    let toml = format!("{}/config/models/{name}.toml", env!("CARGO_MANIFEST_DIR"));
     let json = export(Path::new(&toml), &dir.join("matrices"));
     let rec = dir.join("rec.mcap");
-    super::tracker::make_scenario("healthy", 150, 3.0, &rec);
-    let run = |model: &Path, name: &str| -> Vec<u8> {
-        let cfg = dir.join(format!("{name}.toml"));
+    scenario(&ScenarioArgs {
+        name: "healthy".into(),
+        model: toml.clone().into(),
+        sets,
+        days: 3.0,
+        seed: 1,
+        modes,
+        connection: None,
+        at: None,
+        event_day: None,
+        shape_digits: 0,
+        out: rec.clone(),
+    })
+    .unwrap();
+    let run = |model: &Path, tag: &str| -> Vec<u8> {
+        let cfg = dir.join(format!("{tag}.toml"));
         std::fs::write(
             &cfg,
             format!(
-                "[[structures]]\nname = \"lab-frame\"\nmodel = {:?}\n",
+                "[[structures]]\nname = \"{structure}\"\nmodel = {:?}\n",
                 model.to_str().unwrap()
             ),
         )
         .unwrap();
-        let out = dir.join(format!("{name}.mcap"));
+        let out = dir.join(format!("{tag}.mcap"));
         let r = Command::new(env!("CARGO_BIN_EXE_boltwatch"))
             .env("BOLTWATCH__LOG__LEVEL", "warn")
-            .env("BOLTWATCH__TRACKER__CROSSCHECK_EVERY_SETS", "50")
+            .env(
+                "BOLTWATCH__TRACKER__CROSSCHECK_EVERY_SETS",
+                crosscheck_every,
+            )
             .arg("replay")
             .arg(&rec)
             .arg("-o")
@@ -264,7 +294,7 @@ fn replay_with_the_imported_lab_frame_gives_the_same_bytes() {
             .unwrap();
         assert!(
             r.status.success(),
-            "replay with {}: {}",
+            "{name}: replay with {}: {}",
             model.display(),
             String::from_utf8_lossy(&r.stderr)
         );
@@ -272,8 +302,8 @@ fn replay_with_the_imported_lab_frame_gives_the_same_bytes() {
     };
     let a = run(Path::new(&toml), "toml");
     let b = run(&json, "imported");
-    let topics = |bytes: &[u8], dir: &Path, name: &str| {
-        let p = dir.join(format!("{name}.check.mcap"));
+    let topics = |bytes: &[u8], tag: &str| {
+        let p = dir.join(format!("{tag}.check.mcap"));
         std::fs::write(&p, bytes).unwrap();
         boltwatch::io::mcap::read_all(&p)
             .unwrap()
@@ -281,22 +311,31 @@ fn replay_with_the_imported_lab_frame_gives_the_same_bytes() {
             .map(|m| (m.topic, m.data))
             .collect::<Vec<_>>()
     };
-    let (ma, mb) = (topics(&a, &dir, "a"), topics(&b, &dir, "b"));
+    let (ma, mb) = (topics(&a, "a"), topics(&b, "b"));
+    assert!(
+        ma.iter().any(|(t, _)| t.ends_with("/stiffness")),
+        "{name}: estimates written"
+    );
     assert!(
         ma.iter().any(|(t, _)| t.ends_with("/crosscheck")),
-        "cross-checks ran"
+        "{name}: cross-checks ran"
     );
-    assert_eq!(ma.len(), mb.len());
+    assert_eq!(ma.len(), mb.len(), "{name}");
     for (x, y) in ma.iter().zip(&mb) {
-        assert_eq!(x.0, y.0);
+        assert_eq!(x.0, y.0, "{name}");
         assert_eq!(
             String::from_utf8_lossy(&x.1),
             String::from_utf8_lossy(&y.1),
-            "{}",
+            "{name}: {}",
             x.0
         );
     }
-    assert!(a == b, "the output files differ byte for byte");
+    assert!(a == b, "{name}: the output files differ byte for byte");
+    println!(
+        "{name}: {} messages, {} bytes, identical",
+        ma.len(),
+        a.len()
+    );
 }
 
 /// The lab frame exported, its `M` replaced by a lumped one: each translation keeps its
