@@ -12,6 +12,7 @@ mod golden;
 mod import;
 mod modal_set;
 mod mode_matching;
+mod oma;
 mod replay_cli;
 mod sensitivity;
 mod solid;
