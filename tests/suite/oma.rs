@@ -13,7 +13,9 @@ use super::common::load_model;
 /// finds every mode within 0.5 % in frequency, MAC ≥ 0.95 and damping within 30 %, and no
 /// mode that is not there. Measured: frequencies within 9.5e-4 (the lowest mode; the others
 /// 4.6e-4), damping within 4.1 %, MAC 1.0000, 11 modes. With 20 block rows (lags up to 0.38
-/// of the lowest period) and 120 s the lowest mode came out 0.7 % high.
+/// of the lowest period) and 120 s the lowest mode came out 0.7 % high. 12 reference
+/// channels chosen automatically (pivoted QR of R_0): 0.75 s for the identification, against
+/// 4.7 s with all 42 as references (the same modes to the same accuracy).
 #[test]
 fn ssi_cov_finds_the_lab_frame_modes_from_simulated_accelerations() {
     let model = load_model("lab-frame");
