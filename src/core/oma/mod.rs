@@ -14,6 +14,7 @@
 pub mod ssi;
 pub mod stabilize;
 pub mod synth;
+pub mod uncertainty;
 
 use faer::Mat;
 
