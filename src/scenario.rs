@@ -281,6 +281,8 @@ impl Scenario {
                         shape: Some(m.shape.iter().map(|&v| Some(v)).collect()),
                         shape_nsd: positive(self.noise.shape_nsd),
                         shape_std: None,
+                        damping_ratio: None,
+                        damping_std: None,
                     })
                     .collect(),
                 temperature_c: Some((temperature * 100.0).round() / 100.0),

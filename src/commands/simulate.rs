@@ -109,6 +109,8 @@ pub fn run(args: &SimulateArgs) -> Result<()> {
                 shape: Some(m.shape.iter().map(|&v| Some(v)).collect()),
                 shape_nsd: positive(args.shape_nsd),
                 shape_std: None,
+                damping_ratio: None,
+                damping_std: None,
             })
             .collect(),
         temperature_c: None,

@@ -55,6 +55,8 @@ const MODE_FIELDS: &[&str] = &[
     "shape",
     "shape_nsd",
     "shape_std",
+    "damping_ratio",
+    "damping_std",
 ];
 
 /// One measured modal set, validated.
@@ -91,6 +93,11 @@ pub struct MeasuredMode {
     /// `None` exactly where the shape entry is; used instead of `shape_nsd` when present
     /// (entries of ~0 std are floored, [`crate::core::updating::data::floored_shape_std`]).
     pub shape_std: Option<Vec<Option<f64>>>,
+    /// Modal damping ratio, a fraction in `[0, 1)` (as an identification reports it; the
+    /// updating uses frequencies and shapes only).
+    pub damping_ratio: Option<f64>,
+    /// Standard deviation of `damping_ratio` (> 0); only with it.
+    pub damping_std: Option<f64>,
 }
 
 /// Why a modal set was rejected: the offending field (a JSON path such as `modes[2].shape[5]`) and the reason.
@@ -520,12 +527,37 @@ fn parse_mode(i: usize, v: &Value, n_channels: usize) -> Result<MeasuredMode, Re
         )?),
     };
 
+    let z_path = format!("{path}.damping_ratio");
+    let damping_ratio = match obj.get("damping_ratio") {
+        None => None,
+        Some(v) => {
+            let z = number(v, &z_path)?;
+            if !(0.0..1.0).contains(&z) {
+                return Err(reject(
+                    z_path,
+                    format!("{z} is not a damping ratio (a fraction in [0, 1))"),
+                ));
+            }
+            Some(z)
+        }
+    };
+    let zs_path = format!("{path}.damping_std");
+    let damping_std = obj
+        .get("damping_std")
+        .map(|v| positive(v, &zs_path))
+        .transpose()?;
+    if damping_std.is_some() && damping_ratio.is_none() {
+        return Err(reject(zs_path, "present on a mode without damping_ratio"));
+    }
+
     Ok(MeasuredMode {
         frequency_hz,
         frequency_cov,
         shape,
         shape_nsd,
         shape_std,
+        damping_ratio,
+        damping_std,
     })
 }
 
@@ -718,6 +750,12 @@ impl ModalSet {
                         .map(|e| e.map_or(Value::Null, Value::from))
                         .collect();
                     mode.insert("shape_std".into(), Value::Array(entries));
+                }
+                if let Some(z) = m.damping_ratio {
+                    mode.insert("damping_ratio".into(), z.into());
+                }
+                if let Some(z) = m.damping_std {
+                    mode.insert("damping_std".into(), z.into());
                 }
                 Value::Object(mode)
             })

@@ -93,6 +93,8 @@ fn full_set_parses_to_expected_values() {
             shape: Some(vec![Some(0.12), None]),
             shape_nsd: Some(0.05),
             shape_std: None,
+            damping_ratio: None,
+            damping_std: None,
         }
     );
     assert_eq!(set.modes[2].shape, None);
@@ -122,6 +124,8 @@ fn round_trip_keeps_sub_seconds_and_awkward_floats() {
                 shape: Some(vec![None, Some(1e-300), Some(-123456.789e10)]),
                 shape_nsd: None,
                 shape_std: None,
+                damping_ratio: None,
+                damping_std: None,
             },
             MeasuredMode {
                 frequency_hz: 1.0 / 3.0,
@@ -129,6 +133,8 @@ fn round_trip_keeps_sub_seconds_and_awkward_floats() {
                 shape: None,
                 shape_nsd: None,
                 shape_std: None,
+                damping_ratio: None,
+                damping_std: None,
             },
         ],
         temperature_c: None,
@@ -760,4 +766,31 @@ fn shape_std_is_validated_entry_by_entry() {
         "modes[1].shape_std",
         &["present on some modes but not others"],
     );
+}
+
+/// The damping fields an identification adds (issue 26): kept and written back; a ratio
+/// outside [0, 1) or a std without a ratio is rejected, naming the field.
+#[test]
+fn damping_fields_are_kept_and_checked() {
+    let v = with(|v| {
+        v["modes"][0]["damping_ratio"] = json!(0.012);
+        v["modes"][0]["damping_std"] = json!(0.002);
+    });
+    let set = parse(&v).unwrap();
+    assert_eq!(set.modes[0].damping_ratio, Some(0.012));
+    assert_eq!(set.modes[0].damping_std, Some(0.002));
+    assert_eq!(parse(&set.to_json()).unwrap(), set);
+    let v = with(|v| v["modes"][1]["damping_ratio"] = json!(1.5));
+    assert_rejected(parse(&v), "modes[1].damping_ratio", &["1.5", "fraction"]);
+    let v = with(|v| v["modes"][1]["damping_std"] = json!(0.01));
+    assert_rejected(
+        parse(&v),
+        "modes[1].damping_std",
+        &["without damping_ratio"],
+    );
+    let v = with(|v| {
+        v["modes"][1]["damping_ratio"] = json!(0.01);
+        v["modes"][1]["damping_std"] = json!(0.0);
+    });
+    assert_rejected(parse(&v), "modes[1].damping_std", &["must be > 0"]);
 }

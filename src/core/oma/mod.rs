@@ -11,6 +11,7 @@
 //! * [`synth`]: records simulated from a model (modal superposition under random forces,
 //!   modal damping, sensor noise), the exact truth the tests and `scenario` need.
 
+pub mod identify;
 pub mod ssi;
 pub mod stabilize;
 pub mod synth;
