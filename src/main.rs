@@ -3,7 +3,8 @@
 use std::process::ExitCode;
 
 use boltwatch::commands::{
-    diagnose, export, modes, publish, replay, report, run, scenario, simulate, sweep, update,
+    diagnose, export, identify, modes, publish, replay, report, run, scenario, simulate, sweep,
+    update,
 };
 use clap::{Parser, Subcommand};
 
@@ -43,6 +44,8 @@ enum Command {
     Publish(publish::PublishArgs),
     /// Write a model's K0, K_l and M (Matrix Market) and its DOFs and channels, for other tools.
     ExportMatrices(export::ExportArgs),
+    /// Identify modal sets, with uncertainties, from a raw vibration record (SSI-COV).
+    Identify(identify::IdentifyArgs),
 }
 
 fn main() -> ExitCode {
@@ -61,6 +64,7 @@ fn main() -> ExitCode {
         Command::Run(a) => run::run(a),
         Command::Publish(a) => publish::run(a),
         Command::ExportMatrices(a) => export::run(a),
+        Command::Identify(a) => identify::run(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -3,6 +3,7 @@
 pub mod bayes;
 pub mod diagnose;
 pub mod export;
+pub mod identify;
 pub mod inputs;
 pub mod modes;
 pub mod progress;

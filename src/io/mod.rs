@@ -7,6 +7,7 @@ pub mod checkpoint;
 pub mod driver;
 pub mod mcap;
 pub mod model;
+pub mod record;
 pub mod replay;
 pub mod schemas;
 pub mod zenoh;

@@ -1,0 +1,215 @@
+//! `boltwatch identify`: modal sets with uncertainties from a raw vibration record
+//! (operational modal analysis, [`crate::core::oma`]).
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail};
+use chrono::{DateTime, Utc};
+
+use super::write_json;
+use crate::contract::modal_set::{MeasuredMode, ModalSet, UNCERTAINTY_FLOOR};
+use crate::core::oma::Record;
+use crate::core::oma::identify::{IdentifiedMode, IdentifyOptions, identify};
+use crate::io::record::read_csv;
+
+#[derive(Debug, clap::Args)]
+pub struct IdentifyArgs {
+    /// Record: CSV with a header `time_s,<channel>,…`, uniformly sampled (a sidecar
+    /// FILE.json may give rate_hz, unit, structure, channels, start).
+    #[arg(long)]
+    pub input: PathBuf,
+    /// Output: one boltwatch.modal_set.v1, or a list of them with --window.
+    #[arg(short, long)]
+    pub out: PathBuf,
+    /// Window length, s: the record is cut into consecutive windows, each identified on its
+    /// own (the remainder shorter than a window is left out and reported).
+    #[arg(long)]
+    pub window: Option<f64>,
+    /// Largest model order of the stabilization diagram (orders 2, 4, …).
+    #[arg(long, default_value_t = 80)]
+    pub order_max: usize,
+    /// Frequency band of interest, `lo,hi` in Hz (default: 0 to 0.45 of the sampling rate).
+    #[arg(long)]
+    pub band: Option<String>,
+    /// Block rows of the Hankel matrix (lags up to 2s − 1 samples).
+    #[arg(long, default_value_t = 40)]
+    pub block_rows: usize,
+    /// Blocks the record (or window) is cut into for the uncertainties.
+    #[arg(long, default_value_t = 30)]
+    pub blocks: usize,
+    /// A model: its channels must include the record's, and its name is the structure.
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Time of the first sample (RFC 3339; default: the sidecar's `start`, else the time
+    /// column read as seconds after 1970-01-01T00:00:00Z).
+    #[arg(long)]
+    pub start: Option<String>,
+}
+
+pub fn run(args: &IdentifyArgs) -> Result<()> {
+    let file = read_csv(&args.input)?;
+    let record = &file.record;
+    let structure = match &args.model {
+        Some(path) => {
+            let (_, model) = super::load_description(path)?;
+            let known: Vec<&str> = model.channels().iter().map(|c| c.name.as_str()).collect();
+            if let Some(c) = record
+                .channels
+                .iter()
+                .find(|c| !known.contains(&c.as_str()))
+            {
+                bail!(
+                    "{}: channel `{c}` is not a channel of model `{}`",
+                    args.input.display(),
+                    model.name
+                );
+            }
+            if let Some(s) = &file.sidecar.structure
+                && s != &model.name
+            {
+                bail!(
+                    "{}: structure `{s}` of the sidecar is not the model's `{}`",
+                    args.input.display(),
+                    model.name
+                );
+            }
+            model.name.clone()
+        }
+        None => file.sidecar.structure.clone().unwrap_or_else(|| {
+            args.input
+                .file_stem()
+                .map_or("structure".into(), |s| s.to_string_lossy().into_owned())
+        }),
+    };
+    let start: DateTime<Utc> = match (&args.start, file.sidecar.start) {
+        (Some(s), _) => DateTime::parse_from_rfc3339(s)
+            .with_context(|| format!("--start `{s}`: not an RFC 3339 time"))?
+            .with_timezone(&Utc),
+        (None, Some(t)) => t,
+        (None, None) => DateTime::from_timestamp_millis((file.t0_s * 1000.0).round() as i64)
+            .context("the time column's first value is not a time")?,
+    };
+    let mut opts = IdentifyOptions::default();
+    opts.ssi.order_max = args.order_max;
+    opts.ssi.block_rows = args.block_rows;
+    opts.blocks = args.blocks;
+    opts.criteria.band_hz = match &args.band {
+        Some(b) => parse_band(b)?,
+        None => (0.0, 0.45 * record.rate_hz),
+    };
+    let window = match args.window {
+        None => record.len(),
+        Some(w) if w > 0.0 && w.is_finite() => (w * record.rate_hz).round() as usize,
+        Some(w) => bail!("--window {w}: must be a positive number of seconds"),
+    };
+    let n_windows = record.len() / window.max(1);
+    if n_windows == 0 {
+        bail!(
+            "--window {} s is longer than the record ({:.3} s)",
+            args.window.unwrap_or_default(),
+            record.duration_s()
+        );
+    }
+    let mut sets = Vec::new();
+    for w in 0..n_windows {
+        let part = Record {
+            channels: record.channels.clone(),
+            rate_hz: record.rate_hz,
+            samples: record.samples.subrows(w * window, window).to_owned(),
+        };
+        let modes = identify(&part, &opts).with_context(|| {
+            format!(
+                "{}: window {} ({:.3} s from the start)",
+                args.input.display(),
+                w + 1,
+                (w * window) as f64 / record.rate_hz
+            )
+        })?;
+        let time = start
+            + chrono::TimeDelta::microseconds(
+                ((w * window) as f64 / record.rate_hz * 1e6).round() as i64
+            );
+        let set = modal_set(&structure, time, &record.channels, &modes, &args.input);
+        println!(
+            "window {} ({}): {} modes: {}",
+            w + 1,
+            time.to_rfc3339_opts(chrono::SecondsFormat::Millis, true),
+            modes.len(),
+            modes
+                .iter()
+                .map(|m| format!(
+                    "{:.3} ± {:.3} Hz (ζ {:.2} ± {:.2} %)",
+                    m.frequency_hz,
+                    m.frequency_std,
+                    100.0 * m.damping,
+                    100.0 * m.damping_std
+                ))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+        sets.push(set.to_json());
+    }
+    let left = record.len() - n_windows * window;
+    if left > 0 && args.window.is_some() {
+        println!(
+            "left out: the last {:.3} s (shorter than a window)",
+            left as f64 / record.rate_hz
+        );
+    }
+    let out = if args.window.is_none() {
+        sets.pop().expect("one window")
+    } else {
+        serde_json::Value::Array(sets)
+    };
+    write_json(&args.out, &out)?;
+    println!("written: {}", args.out.display());
+    Ok(())
+}
+
+fn parse_band(s: &str) -> Result<(f64, f64)> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|x| x.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| anyhow::anyhow!("--band `{s}`: need `lo,hi` in Hz"))?;
+    match v[..] {
+        [lo, hi] if lo >= 0.0 && hi > lo && hi.is_finite() => Ok((lo, hi)),
+        _ => bail!("--band `{s}`: need 0 ≤ lo < hi"),
+    }
+}
+
+/// The modal set of one window: shapes as identified (unit norm), `frequency_cov` = σ_f/f,
+/// `shape_std` per entry and `shape_nsd` (27) = RMS of the entry stds over the RMS of the
+/// shape, each uncertainty at least the contract's floor.
+fn modal_set(
+    structure: &str,
+    time: DateTime<Utc>,
+    channels: &[String],
+    modes: &[IdentifiedMode],
+    input: &std::path::Path,
+) -> ModalSet {
+    let floor = |x: f64| x.max(UNCERTAINTY_FLOOR);
+    ModalSet {
+        structure: structure.to_string(),
+        time,
+        channels: channels.to_vec(),
+        modes: modes
+            .iter()
+            .map(|m| {
+                let rms =
+                    |v: &[f64]| (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt();
+                MeasuredMode {
+                    frequency_hz: m.frequency_hz,
+                    frequency_cov: Some(floor(m.frequency_std / m.frequency_hz)),
+                    shape: Some(m.shape.iter().map(|&v| Some(v)).collect()),
+                    shape_nsd: Some(floor(rms(&m.shape_std) / rms(&m.shape))),
+                    shape_std: Some(m.shape_std.iter().map(|&v| Some(v.max(0.0))).collect()),
+                    damping_ratio: Some(m.damping.clamp(0.0, 0.999)),
+                    damping_std: Some(floor(m.damping_std)),
+                }
+            })
+            .collect(),
+        temperature_c: None,
+        source: Some(format!("boltwatch identify {} (SSI-COV)", input.display())),
+    }
+}
