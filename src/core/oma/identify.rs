@@ -58,41 +58,38 @@ pub fn identify(record: &Record, opts: &IdentifyOptions) -> Result<Vec<Identifie
     };
     let (poles, sens) = identify_with_sensitivities(record, &refs, &opts.ssi, opts.blocks)?;
     let selected = select_modes(&poles, &opts.criteria);
-    let mut orders: Vec<usize> = selected.iter().map(|m| m.pole.order).collect();
-    orders.sort_unstable();
-    orders.dedup();
-    let mut at_order = std::collections::HashMap::new();
-    for n in orders {
-        at_order.insert(n, sens.modes_at(n)?);
-    }
+    // Each mode's σ at the order of its representative pole (the member nearest the
+    // cluster's median frequency). Taking instead the member with the median σ_f over the
+    // cluster's orders over-covered in the Monte Carlo test (98.2 % within 2σ against
+    // 97.1 % this way, target 90–98 %): the lower orders, where a mode first stabilizes,
+    // report larger σ than the spread of their own estimates.
+    let mut solves = std::collections::HashMap::new();
     let mut out = Vec::with_capacity(selected.len());
     for m in &selected {
-        let candidates = &at_order[&m.pole.order];
-        let Some(best) = candidates.iter().min_by(|a, b| {
-            (a.frequency_hz - m.pole.frequency_hz)
-                .abs()
-                .total_cmp(&(b.frequency_hz - m.pole.frequency_hz).abs())
-        }) else {
-            continue;
-        };
-        // The same pole (A from the normal equations here, from a QR in the selection).
-        if (best.frequency_hz / m.pole.frequency_hz - 1.0).abs() > 1e-6 {
-            return Err(OmaError::Numerical(format!(
-                "the pole at {:.4} Hz (order {}) is not found again for its uncertainty",
-                m.pole.frequency_hz, m.pole.order
-            )));
+        let (order, f) = (m.pole.order, m.pole.frequency_hz);
+        if !solves.contains_key(&order) {
+            solves.insert(order, sens.order(order)?);
         }
+        let best = sens
+            .mode_near(&solves[&order], f)
+            .filter(|s| (s.frequency_hz / f - 1.0).abs() <= 1e-6)
+            .ok_or_else(|| {
+                OmaError::Numerical(format!(
+                    "the pole at {f:.4} Hz (order {order}) is not found again for its uncertainty"
+                ))
+            })?;
         out.push(IdentifiedMode {
             frequency_hz: best.frequency_hz,
             frequency_std: best.frequency_std,
             damping: best.damping,
             damping_std: best.damping_std,
-            shape: best.shape.clone(),
-            shape_std: best.shape_std.clone(),
-            order: m.pole.order,
+            shape: best.shape,
+            shape_std: best.shape_std,
+            order,
             members: m.members,
             mpc: m.mpc,
         });
     }
+    out.sort_by(|a, b| a.frequency_hz.total_cmp(&b.frequency_hz));
     Ok(out)
 }

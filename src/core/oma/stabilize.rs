@@ -57,6 +57,8 @@ pub struct SelectedMode {
     /// Stable poles in the cluster, and the spread of their frequencies (relative std).
     pub members: usize,
     pub frequency_spread: f64,
+    /// Every stable pole of the cluster: (model order, frequency in Hz).
+    pub member_poles: Vec<(usize, f64)>,
 }
 
 /// Selects the modes of a pole set (module docs), ascending in frequency.
@@ -142,6 +144,7 @@ pub fn select_modes(set: &PoleSet, c: &Criteria) -> Vec<SelectedMode> {
                 mpc,
                 members: cl.len(),
                 frequency_spread: spread,
+                member_poles: cl.iter().map(|p| (p.order, p.frequency_hz)).collect(),
             }
         })
         .collect();

@@ -213,10 +213,50 @@ pub struct ModeStd {
     pub shape_std: Vec<f64>,
 }
 
+/// The eigen-decomposition of the state matrix at one order, with what every pole's
+/// standard deviations need (module docs, step 4).
+pub struct OrderSolve {
+    pub n: usize,
+    pub lam: Vec<c64>,
+    psi: Mat<c64>,
+    /// `Ψ⁻¹ M⁻¹`.
+    p: Mat<c64>,
+    /// `C Ψ`.
+    c_psi: Mat<c64>,
+}
+
 impl Sensitivities {
     /// The modes of order `n` (one of each conjugate pair, `Im λ > 0`) with their standard
     /// deviations (module docs, step 4), ascending in frequency.
     pub fn modes_at(&self, n: usize) -> Result<Vec<ModeStd>, OmaError> {
+        let o = self.order(n)?;
+        let mut out: Vec<ModeStd> = (0..n)
+            .filter(|&j| o.lam[j].im > 0.0)
+            .map(|j| self.mode_std(&o, j))
+            .collect();
+        out.sort_by(|a, b| a.frequency_hz.total_cmp(&b.frequency_hz));
+        Ok(out)
+    }
+
+    /// The pole of order `n` nearest to `frequency_hz` (`Im λ > 0`), with its standard
+    /// deviations.
+    pub fn mode_near(&self, o: &OrderSolve, frequency_hz: f64) -> Option<ModeStd> {
+        let f = |l: c64| {
+            (c64::new(l.norm().ln(), l.im.atan2(l.re)) * self.rate_hz).norm()
+                / (2.0 * std::f64::consts::PI)
+        };
+        (0..o.n)
+            .filter(|&j| o.lam[j].im > 0.0)
+            .min_by(|&a, &b| {
+                (f(o.lam[a]) - frequency_hz)
+                    .abs()
+                    .total_cmp(&(f(o.lam[b]) - frequency_hz).abs())
+            })
+            .map(|j| self.mode_std(o, j))
+    }
+
+    /// The state matrix of order `n` (`A = M⁻¹N`) and its eigen-decomposition.
+    pub fn order(&self, n: usize) -> Result<OrderSolve, OmaError> {
         if n == 0 || n > self.n_max {
             return Err(OmaError::Input(format!(
                 "order {n} is outside 1 … {}",
@@ -240,96 +280,100 @@ impl Sensitivities {
         let psi: Mat<c64> = eig.U().to_owned();
         let lam: Vec<c64> = (0..n).map(|i| eig.S()[i]).collect();
         let psi_inv = psi.partial_piv_lu().inverse();
-        // M⁻¹ as a complex matrix, and P = Ψ⁻¹ M⁻¹.
         let m_inv_real = m_llt.inverse();
         let m_inv = Mat::from_fn(n, n, |i, j| c64::new(m_inv_real[(i, j)], 0.0));
         let p = &psi_inv * &m_inv;
         let c_n = Mat::from_fn(r, n, |i, j| c64::new(on[(i, j)], 0.0));
         let c_psi = &c_n * &psi;
+        Ok(OrderSolve {
+            n,
+            lam,
+            psi,
+            p,
+            c_psi,
+        })
+    }
+
+    /// Pole `j` of an order's decomposition with its standard deviations.
+    fn mode_std(&self, o: &OrderSolve, j: usize) -> ModeStd {
+        let (n, r) = (o.n, self.r);
+        let (lam, psi, p, c_psi) = (&o.lam, &o.psi, &o.p, &o.c_psi);
         let dt = 1.0 / self.rate_hz;
-        let mut out = Vec::new();
-        for j in 0..n {
-            let l = lam[j];
-            if l.im <= 0.0 {
-                continue;
+        let l = lam[j];
+        let mu = c64::new(l.norm().ln(), l.im.atan2(l.re)) * self.rate_hz;
+        let wabs = mu.norm();
+        let psi_j: Vec<c64> = (0..n).map(|i| psi[(i, j)]).collect();
+        let phi: Vec<c64> = (0..r).map(|i| c_psi[(i, j)]).collect();
+        // g = ℓ_j M⁻¹ (row j of P); K = C Ψ Γ_j P.
+        let g: Vec<c64> = (0..n).map(|i| p[(j, i)]).collect();
+        let kmat = Mat::from_fn(r, n, |a_, b_| {
+            (0..n)
+                .filter(|&i| i != j)
+                .map(|i| c_psi[(a_, i)] * p[(i, b_)] / (l - lam[i]))
+                .fold(c64::new(0.0, 0.0), |acc, x| acc + x)
+        });
+        let kappa = (0..r)
+            .max_by(|&a_, &b_| phi[a_].norm().total_cmp(&phi[b_].norm()))
+            .expect("r > 0");
+        let norm = phi.iter().map(|z| z.norm_sqr()).sum::<f64>().sqrt();
+        let alpha = phi[kappa].im.atan2(phi[kappa].re);
+        let rot = c64::new(alpha.cos(), -alpha.sin());
+        let hat: Vec<c64> = phi.iter().map(|z| z * rot / norm).collect();
+        let (mut vf, mut vz) = (0.0, 0.0);
+        let mut vshape = vec![0.0; r];
+        for qk in &self.q {
+            let [q1, q2, q3, q4] = qk;
+            // w = (Q3 − λQ1)ψ + (Q2 − λQ1)ᵀψ.
+            let w: Vec<c64> = (0..n)
+                .map(|a_| {
+                    (0..n)
+                        .map(|b_| {
+                            (c64::new(q3[(a_, b_)], 0.0) - l * q1[(a_, b_)]) * psi_j[b_]
+                                + (c64::new(q2[(b_, a_)], 0.0) - l * q1[(b_, a_)]) * psi_j[b_]
+                        })
+                        .fold(c64::new(0.0, 0.0), |acc, x| acc + x)
+                })
+                .collect();
+            let dl = g
+                .iter()
+                .zip(&w)
+                .fold(c64::new(0.0, 0.0), |acc, (a_, b_)| acc + a_ * b_);
+            let dmu = dl / (l * dt);
+            let df = (mu.conj() * dmu).re / (2.0 * std::f64::consts::PI * wabs);
+            let dz = (-(mu.im * mu.im) * dmu.re + mu.re * mu.im * dmu.im) / wabs.powi(3);
+            vf += df * df;
+            vz += dz * dz;
+            let dphi: Vec<c64> = (0..r)
+                .map(|a_| {
+                    (0..n)
+                        .map(|b_| psi_j[b_] * q4[(a_, b_)] + kmat[(a_, b_)] * w[b_])
+                        .fold(c64::new(0.0, 0.0), |acc, x| acc + x)
+                })
+                .collect();
+            let dalpha = (dphi[kappa] / phi[kappa]).im;
+            let dw: Vec<c64> = dphi
+                .iter()
+                .zip(&phi)
+                .map(|(d_, p_)| (d_ - c64::new(0.0, dalpha) * p_) * rot)
+                .collect();
+            let proj = hat
+                .iter()
+                .zip(&dw)
+                .fold(c64::new(0.0, 0.0), |acc, (h_, d_)| acc + h_.conj() * d_)
+                .re;
+            for i in 0..r {
+                let dh = (dw[i] - hat[i] * proj) / norm;
+                vshape[i] += dh.re * dh.re;
             }
-            let mu = c64::new(l.norm().ln(), l.im.atan2(l.re)) * self.rate_hz;
-            let wabs = mu.norm();
-            let psi_j: Vec<c64> = (0..n).map(|i| psi[(i, j)]).collect();
-            let phi: Vec<c64> = (0..r).map(|i| c_psi[(i, j)]).collect();
-            // g = ℓ_j M⁻¹ (row j of P); K = C Ψ Γ_j P.
-            let g: Vec<c64> = (0..n).map(|i| p[(j, i)]).collect();
-            let kmat = Mat::from_fn(r, n, |a_, b_| {
-                (0..n)
-                    .filter(|&i| i != j)
-                    .map(|i| c_psi[(a_, i)] * p[(i, b_)] / (l - lam[i]))
-                    .fold(c64::new(0.0, 0.0), |acc, x| acc + x)
-            });
-            let kappa = (0..r)
-                .max_by(|&a_, &b_| phi[a_].norm().total_cmp(&phi[b_].norm()))
-                .expect("r > 0");
-            let norm = phi.iter().map(|z| z.norm_sqr()).sum::<f64>().sqrt();
-            let alpha = phi[kappa].im.atan2(phi[kappa].re);
-            let rot = c64::new(alpha.cos(), -alpha.sin());
-            let hat: Vec<c64> = phi.iter().map(|z| z * rot / norm).collect();
-            let (mut vf, mut vz) = (0.0, 0.0);
-            let mut vshape = vec![0.0; r];
-            for qk in &self.q {
-                let [q1, q2, q3, q4] = qk;
-                // w = (Q3 − λQ1)ψ + (Q2 − λQ1)ᵀψ.
-                let w: Vec<c64> = (0..n)
-                    .map(|a_| {
-                        (0..n)
-                            .map(|b_| {
-                                (c64::new(q3[(a_, b_)], 0.0) - l * q1[(a_, b_)]) * psi_j[b_]
-                                    + (c64::new(q2[(b_, a_)], 0.0) - l * q1[(b_, a_)]) * psi_j[b_]
-                            })
-                            .fold(c64::new(0.0, 0.0), |acc, x| acc + x)
-                    })
-                    .collect();
-                let dl = g
-                    .iter()
-                    .zip(&w)
-                    .fold(c64::new(0.0, 0.0), |acc, (a_, b_)| acc + a_ * b_);
-                let dmu = dl / (l * dt);
-                let df = (mu.conj() * dmu).re / (2.0 * std::f64::consts::PI * wabs);
-                let dz = (-(mu.im * mu.im) * dmu.re + mu.re * mu.im * dmu.im) / wabs.powi(3);
-                vf += df * df;
-                vz += dz * dz;
-                let dphi: Vec<c64> = (0..r)
-                    .map(|a_| {
-                        (0..n)
-                            .map(|b_| psi_j[b_] * q4[(a_, b_)] + kmat[(a_, b_)] * w[b_])
-                            .fold(c64::new(0.0, 0.0), |acc, x| acc + x)
-                    })
-                    .collect();
-                let dalpha = (dphi[kappa] / phi[kappa]).im;
-                let dw: Vec<c64> = dphi
-                    .iter()
-                    .zip(&phi)
-                    .map(|(d_, p_)| (d_ - c64::new(0.0, dalpha) * p_) * rot)
-                    .collect();
-                let proj = hat
-                    .iter()
-                    .zip(&dw)
-                    .fold(c64::new(0.0, 0.0), |acc, (h_, d_)| acc + h_.conj() * d_)
-                    .re;
-                for i in 0..r {
-                    let dh = (dw[i] - hat[i] * proj) / norm;
-                    vshape[i] += dh.re * dh.re;
-                }
-            }
-            out.push(ModeStd {
-                frequency_hz: wabs / (2.0 * std::f64::consts::PI),
-                frequency_std: vf.sqrt(),
-                damping: -mu.re / wabs,
-                damping_std: vz.sqrt(),
-                shape: hat.iter().map(|z| z.re).collect(),
-                shape_std: vshape.iter().map(|v| v.sqrt()).collect(),
-            });
         }
-        out.sort_by(|a, b| a.frequency_hz.total_cmp(&b.frequency_hz));
-        Ok(out)
+        ModeStd {
+            frequency_hz: wabs / (2.0 * std::f64::consts::PI),
+            frequency_std: vf.sqrt(),
+            damping: -mu.re / wabs,
+            damping_std: vz.sqrt(),
+            shape: hat.iter().map(|z| z.re).collect(),
+            shape_std: vshape.iter().map(|v| v.sqrt()).collect(),
+        }
     }
 }
 
