@@ -67,11 +67,12 @@ pub fn identify(record: &Record, opts: &IdentifyOptions) -> Result<Vec<Identifie
     let mut out = Vec::with_capacity(selected.len());
     for m in &selected {
         let (order, f) = (m.pole.order, m.pole.frequency_hz);
-        if !solves.contains_key(&order) {
-            solves.insert(order, sens.order(order)?);
-        }
+        let solve = match solves.entry(order) {
+            std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
+            std::collections::hash_map::Entry::Vacant(e) => e.insert(sens.order(order)?),
+        };
         let best = sens
-            .mode_near(&solves[&order], f)
+            .mode_near(solve, f)
             .filter(|s| (s.frequency_hz / f - 1.0).abs() <= 1e-6)
             .ok_or_else(|| {
                 OmaError::Numerical(format!(
