@@ -17,7 +17,7 @@
 //! `|μ| / 2π`, damping ratio `−Re μ / |μ|`, and mode shape `C ψ` for its eigenvector `ψ`.
 //! One SVD serves every model order.
 
-use faer::linalg::solvers::SolveLstsq;
+use faer::linalg::solvers::{SolveLstsq, Svd};
 use faer::{Mat, MatRef, Par, c64};
 
 use super::{OmaError, Record};
@@ -149,6 +149,12 @@ pub fn identify_poles(record: &Record, opts: &SsiOptions) -> Result<PoleSet, Oma
     poles_from_hankel(h.as_ref(), r, record.rate_hz, opts)
 }
 
+/// The thin SVD of a block Hankel matrix: the identification and its uncertainty share it.
+pub fn hankel_svd(h: MatRef<'_, f64>) -> Result<Svd<f64>, OmaError> {
+    h.thin_svd()
+        .map_err(|e| OmaError::Numerical(format!("SVD of the Hankel matrix: {e:?}")))
+}
+
 /// The poles of every model order from a block Hankel matrix of `r` output rows per block.
 pub fn poles_from_hankel(
     h: MatRef<'_, f64>,
@@ -156,10 +162,17 @@ pub fn poles_from_hankel(
     rate_hz: f64,
     opts: &SsiOptions,
 ) -> Result<PoleSet, OmaError> {
-    let s = h.nrows() / r;
-    let svd = h
-        .thin_svd()
-        .map_err(|e| OmaError::Numerical(format!("SVD of the Hankel matrix: {e:?}")))?;
+    poles_from_svd(&hankel_svd(h)?, r, rate_hz, opts)
+}
+
+/// [`poles_from_hankel`] from the Hankel matrix's SVD ([`hankel_svd`]).
+pub fn poles_from_svd(
+    svd: &Svd<f64>,
+    r: usize,
+    rate_hz: f64,
+    opts: &SsiOptions,
+) -> Result<PoleSet, OmaError> {
+    let s = svd.U().nrows() / r;
     let sv: Vec<f64> = svd.S().column_vector().iter().copied().collect();
     let max_order = sv.len().min((s - 1) * r);
     let step = opts.order_step.max(1);
@@ -262,11 +275,54 @@ pub fn mac_complex(a: &[c64], b: &[c64]) -> f64 {
     ab.norm_sqr() / (aa * bb)
 }
 
+/// A test record of three channels: each mode a discrete second-order process with the
+/// exact poles `exp((−ζω ± iω√(1−ζ²))/f_s)` driven by unit white noise
+/// (`x_{k+1} = 2 Re λ x_k − |λ|² x_{k−1} + e_k`), seen with its shape, plus white sensor
+/// noise of std `noise`.
+#[cfg(test)]
+pub(crate) fn ar2_record(
+    fs: f64,
+    modes: &[(f64, f64, [f64; 3])],
+    n: usize,
+    seed: u64,
+    noise: f64,
+) -> Record {
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let unit = Normal::new(0.0, 1.0).unwrap();
+    let mut y = Mat::zeros(n, 3);
+    for &(f, z, shape) in modes {
+        let w = 2.0 * std::f64::consts::PI * f;
+        let lam = (c64::new(-z * w, w * (1.0 - z * z).sqrt()) / fs).exp();
+        let (a1, a2) = (2.0 * lam.re, -lam.norm_sqr());
+        let (mut x1, mut x0) = (0.0, 0.0);
+        for k in 0..n {
+            let x = a1 * x1 + a2 * x0 + unit.sample(&mut rng);
+            x0 = x1;
+            x1 = x;
+            for c in 0..3 {
+                y[(k, c)] += shape[c] * x;
+            }
+        }
+    }
+    if noise > 0.0 {
+        for k in 0..n {
+            for c in 0..3 {
+                y[(k, c)] += noise * unit.sample(&mut rng);
+            }
+        }
+    }
+    Record {
+        channels: vec!["a".into(), "b".into(), "c".into()],
+        rate_hz: fs,
+        samples: y,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use rand::SeedableRng;
-    use rand_distr::{Distribution, Normal};
 
     /// A two-mode system written in state space (discrete, known poles), driven by white
     /// noise: the poles SSI-COV finds at order 4 are the true ones within the estimation
@@ -278,32 +334,7 @@ mod tests {
             (5.0, 0.02, [1.0, 0.6, -0.3]),
             (12.0, 0.03, [0.4, -1.0, 0.8]),
         ];
-        // Each mode as a discrete second-order system with the exact poles.
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
-        let noise = Normal::new(0.0, 1.0).unwrap();
-        let n = 200_000;
-        let mut y = Mat::zeros(n, 3);
-        for (f, z, shape) in modes {
-            let w = 2.0 * std::f64::consts::PI * f;
-            let mu = c64::new(-z * w, w * (1.0 - z * z).sqrt());
-            let lam = (mu / fs).exp();
-            // x_{k+1} = 2 Re λ x_k − |λ|² x_{k−1} + e_k: poles λ, λ̄.
-            let (a1, a2) = (2.0 * lam.re, -lam.norm_sqr());
-            let (mut x1, mut x0) = (0.0, 0.0);
-            for k in 0..n {
-                let x = a1 * x1 + a2 * x0 + noise.sample(&mut rng);
-                x0 = x1;
-                x1 = x;
-                for c in 0..3 {
-                    y[(k, c)] += shape[c] * x;
-                }
-            }
-        }
-        let record = Record {
-            channels: vec!["a".into(), "b".into(), "c".into()],
-            rate_hz: fs,
-            samples: y,
-        };
+        let record = ar2_record(fs, &modes, 200_000, 1, 0.0);
         let opts = SsiOptions {
             block_rows: 10,
             order_max: 4,

@@ -35,10 +35,10 @@
 //! The derivation of the matrix form of step 2 and of the eigenvector step is checked here
 //! against finite differences of the whole identification.
 
-use faer::linalg::solvers::{DenseSolveCore, Solve};
+use faer::linalg::solvers::{DenseSolveCore, Solve, Svd};
 use faer::{Mat, MatRef, Par, c64};
 
-use super::ssi::{SsiOptions, block_hankel, poles_from_hankel};
+use super::ssi::{SsiOptions, block_hankel, hankel_svd, poles_from_svd};
 use super::{OmaError, Record};
 
 /// Lag covariances of a record cut into blocks (module docs, step 1).
@@ -125,10 +125,10 @@ pub struct Sensitivities {
     pub q: Vec<[Mat<f64>; 4]>,
 }
 
-/// Steps 2–3 of the module docs for the Hankel matrix `h` (the mean of the blocks), its
-/// blocks' lag differences `cov.deltas`, and `s` block rows.
+/// Steps 2–3 of the module docs for the SVD ([`hankel_svd`]) of the Hankel matrix (the
+/// mean of the blocks), its blocks' lag differences `cov.deltas`, and `s` block rows.
 pub fn sensitivities(
-    h: MatRef<'_, f64>,
+    svd: &Svd<f64>,
     cov: &BlockCovariances,
     s: usize,
     n_max: usize,
@@ -136,9 +136,6 @@ pub fn sensitivities(
 ) -> Result<Sensitivities, OmaError> {
     use rayon::prelude::*;
     let r = cov.mean[0].nrows();
-    let svd = h
-        .thin_svd()
-        .map_err(|e| OmaError::Numerical(format!("SVD of the Hankel matrix: {e:?}")))?;
     let (u, v) = (svd.U(), svd.V());
     let sig: Vec<f64> = svd.S().column_vector().iter().copied().collect();
     let k = sig.len();
@@ -147,7 +144,7 @@ pub fn sensitivities(
             "order {n_max} exceeds the rank of the Hankel matrix"
         )));
     }
-    let m = h.nrows();
+    let m = u.nrows();
     let o = Mat::from_fn(m, n_max, |i, j| u[(i, j)] * sig[j].sqrt());
     let rows = m - r;
     let up = o.subrows(0, rows);
@@ -389,49 +386,21 @@ pub fn identify_with_sensitivities(
     let cov = block_covariances(record.samples.as_ref(), refs, 2 * s - 1, n_blocks)?;
     let h = block_hankel(&cov.mean, s);
     let r = record.channels.len();
-    let poles = poles_from_hankel(h.as_ref(), r, record.rate_hz, opts)?;
+    let svd = hankel_svd(h.as_ref())?;
+    let poles = poles_from_svd(&svd, r, record.rate_hz, opts)?;
     let n_max = opts.order_max.min(*poles.orders.last().unwrap_or(&0));
-    let sens = sensitivities(h.as_ref(), &cov, s, n_max, record.rate_hz)?;
+    let sens = sensitivities(&svd, &cov, s, n_max, record.rate_hz)?;
     Ok((poles, sens))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use rand::SeedableRng;
-    use rand_distr::{Distribution, Normal};
 
     /// Two modes as discrete AR(2) processes seen by three channels with noise.
     fn record(seed: u64, n: usize) -> Record {
-        let fs = 50.0;
         let modes = [(1.9, 0.02, [1.0, 0.6, -0.3]), (4.7, 0.02, [0.4, -1.0, 0.8])];
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-        let noise = Normal::new(0.0, 1.0).unwrap();
-        let mut y = Mat::zeros(n, 3);
-        for (f, z, shape) in modes {
-            let w = 2.0 * std::f64::consts::PI * f;
-            let lam = (c64::new(-z * w, w * (1.0 - z * z).sqrt()) / fs).exp();
-            let (a1, a2) = (2.0 * lam.re, -lam.norm_sqr());
-            let (mut x1, mut x0) = (0.0, 0.0);
-            for k in 0..n {
-                let x = a1 * x1 + a2 * x0 + noise.sample(&mut rng);
-                x0 = x1;
-                x1 = x;
-                for c in 0..3 {
-                    y[(k, c)] += shape[c] * x;
-                }
-            }
-        }
-        for k in 0..n {
-            for c in 0..3 {
-                y[(k, c)] += 0.5 * noise.sample(&mut rng);
-            }
-        }
-        Record {
-            channels: vec!["a".into(), "b".into(), "c".into()],
-            rate_hz: fs,
-            samples: y,
-        }
+        super::super::ssi::ar2_record(50.0, &modes, n, seed, 0.5)
     }
 
     fn opts() -> SsiOptions {
@@ -452,7 +421,8 @@ mod tests {
         let refs = [0, 1, 2];
         let cov = block_covariances(rec.samples.as_ref(), &refs, 15, 20).unwrap();
         let h = block_hankel(&cov.mean, 8);
-        let sens = sensitivities(h.as_ref(), &cov, 8, 4, rec.rate_hz).unwrap();
+        let sens =
+            sensitivities(&hankel_svd(h.as_ref()).unwrap(), &cov, 8, 4, rec.rate_hz).unwrap();
         // One block only: its standard deviations are |δ| of that block.
         let one = Sensitivities {
             q: vec![sens.q[5].clone()],
@@ -466,7 +436,7 @@ mod tests {
                 mean: cov.mean.clone(),
                 deltas: vec![cov.deltas[0].clone(), cov.deltas[1].clone()],
             };
-            sensitivities(hp.as_ref(), &cp, 8, 4, rec.rate_hz)
+            sensitivities(&hankel_svd(hp.as_ref()).unwrap(), &cp, 8, 4, rec.rate_hz)
                 .unwrap()
                 .modes_at(4)
                 .unwrap()
