@@ -490,14 +490,16 @@ fn detectability_table() {
 /// `fold_modulus`, the modulus parameter `E` is folded into `K0` (so `stiffness-scale@K0`
 /// is what the model lacks, as `modulus@global` in `lab_spec_without_modulus`).
 fn imported_lab(fold_modulus: bool) -> Description {
-    let json = imported_lab_json(fold_modulus);
+    let json = imported_lab_json(fold_modulus, "library");
     let model = boltwatch::io::model::load_model(&json).unwrap();
     Description::matrices(std::sync::Arc::new(model))
 }
 
 /// The `model.json` of [`imported_lab`].
-fn imported_lab_json(fold_modulus: bool) -> std::path::PathBuf {
-    let dir = super::tracker::tmp_dir(&format!("diagnose-imported-{fold_modulus}"));
+/// The exported lab frame in a directory of its own per `tag`: two tests running at once
+/// must not share one (`tmp_dir` empties it), or one deletes the other's outputs.
+fn imported_lab_json(fold_modulus: bool, tag: &str) -> std::path::PathBuf {
+    let dir = super::tracker::tmp_dir(&format!("diagnose-imported-{fold_modulus}-{tag}"));
     let o = std::process::Command::new(env!("CARGO_BIN_EXE_boltwatch"))
         .args(["export-matrices", "--model"])
         .arg(concat!(
@@ -574,7 +576,7 @@ fn diagnosis_of_an_imported_model_names_the_hidden_effect() {
     hidden_effect_is_named(&imported_lab(true), "stiffness-scale@K0=-0.4", 4);
 
     // As a user runs it: simulate --inject and diagnose with the model.json.
-    let json = imported_lab_json(false);
+    let json = imported_lab_json(false, "cli");
     let dir = json.parent().unwrap();
     let run = |args: &[&str]| {
         let o = std::process::Command::new(env!("CARGO_BIN_EXE_boltwatch"))
@@ -631,7 +633,7 @@ fn diagnosis_of_an_imported_model_names_the_hidden_effect() {
 fn the_warning_verdict_diagnoses_an_imported_model() {
     use boltwatch::contract::{AlertDetail, Verdict};
     use boltwatch::pipeline::DiagnoseRequest;
-    let json = imported_lab_json(false);
+    let json = imported_lab_json(false, "warning");
     let model = boltwatch::io::model::load_model(&json).unwrap();
     let data = json.with_file_name("warned.json");
     let o = std::process::Command::new(env!("CARGO_BIN_EXE_boltwatch"))
