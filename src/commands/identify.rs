@@ -116,6 +116,7 @@ pub fn run(args: &IdentifyArgs) -> Result<()> {
             channels: record.channels.clone(),
             rate_hz: record.rate_hz,
             samples: record.samples.subrows(w * window, window).to_owned(),
+            quantities: record.quantities.clone(),
         };
         let modes = identify(&part, &opts).with_context(|| {
             format!(

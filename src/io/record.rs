@@ -2,7 +2,9 @@
 //! sampled, and an optional sidecar `FILE.json` next to `FILE.csv`.
 //!
 //! The sidecar (all keys optional): `rate_hz` (checked against the time column, which it
-//! then need not resolve finely), `unit` (one unit for every channel), `structure`,
+//! then need not resolve finely), `unit` (one unit for every channel) or `units` (one per
+//! column, for channels of mixed quantities; [`crate::core::oma::UNITS`], default `m/s^2`:
+//! samples are converted to SI as they are read), `structure`,
 //! `channels` (the model's names for the columns, in order: a rename), `start` (RFC 3339
 //! time of the first sample). Unknown keys are refused, naming them.
 
@@ -21,6 +23,7 @@ use crate::core::oma::Record;
 pub struct Sidecar {
     pub rate_hz: Option<f64>,
     pub unit: Option<String>,
+    pub units: Option<Vec<String>>,
     pub structure: Option<String>,
     pub channels: Option<Vec<String>>,
     pub start: Option<DateTime<Utc>>,
@@ -153,12 +156,36 @@ pub fn read_csv(path: &Path) -> Result<RecordFile> {
         Some(f) => bail!("{}: rate_hz = {f} must be > 0", sidecar_path.display()),
         None => 1.0 / dt,
     };
-    let samples = Mat::from_fn(n, r, |k, c| values[k * r + c]);
+    let units: Vec<String> = match (&sidecar.unit, &sidecar.units) {
+        (Some(_), Some(_)) => bail!(
+            "{}: give `unit` (every channel) or `units` (one per column), not both",
+            sidecar_path.display()
+        ),
+        (Some(u), None) => vec![u.clone(); r],
+        (None, Some(us)) if us.len() == r => us.clone(),
+        (None, Some(us)) => bail!(
+            "{}: units: {} units for the {r} columns of {name}",
+            sidecar_path.display(),
+            us.len()
+        ),
+        (None, None) => vec!["m/s^2".to_string(); r],
+    };
+    let mut quantities = Vec::with_capacity(r);
+    let mut factors = Vec::with_capacity(r);
+    for (c, u) in units.iter().enumerate() {
+        let (q, f) = crate::core::oma::parse_unit(u).map_err(|e| {
+            anyhow::anyhow!("{}: channel `{}`: {e}", sidecar_path.display(), channels[c])
+        })?;
+        quantities.push(q);
+        factors.push(f);
+    }
+    let samples = Mat::from_fn(n, r, |k, c| values[k * r + c] * factors[c]);
     Ok(RecordFile {
         record: Record {
             channels,
             rate_hz,
             samples,
+            quantities,
         },
         sidecar,
         t0_s: times[0],

@@ -146,7 +146,9 @@ pub fn identify_poles(record: &Record, opts: &SsiOptions) -> Result<PoleSet, Oma
     }
     let cov = output_covariances(record.samples.as_ref(), &refs, lags);
     let h = block_hankel(&cov, s);
-    poles_from_hankel(h.as_ref(), r, record.rate_hz, opts)
+    let mut poles = poles_from_hankel(h.as_ref(), r, record.rate_hz, opts)?;
+    shapes_to_acceleration(&mut poles, &powers(record));
+    Ok(poles)
 }
 
 /// The thin SVD of a block Hankel matrix: the identification and its uncertainty share it.
@@ -223,6 +225,34 @@ pub fn poles_from_svd(
         poles,
         singular_values: sv,
     })
+}
+
+/// Brings every pole's shape entries to acceleration: entry `i` times `μ^{powers[i]}`, μ
+/// the continuous pole (channels of mixed quantities, [`super::Quantity`]).
+pub fn shapes_to_acceleration(poles: &mut PoleSet, powers: &[i32]) {
+    if powers.iter().all(|&p| p == 0) {
+        return;
+    }
+    for p in &mut poles.poles {
+        let w = 2.0 * std::f64::consts::PI * p.frequency_hz;
+        let mu = c64::new(
+            -p.damping * w,
+            w * (1.0 - p.damping * p.damping).max(0.0).sqrt(),
+        );
+        for (z, &k) in p.shape.iter_mut().zip(powers) {
+            *z *= mu.powi(k);
+        }
+    }
+}
+
+/// The power of the continuous pole each channel's shape entry is multiplied by to read as
+/// an acceleration ([`super::Quantity::to_acceleration`]).
+pub fn powers(record: &Record) -> Vec<i32> {
+    record
+        .quantities
+        .iter()
+        .map(|q| q.to_acceleration())
+        .collect()
 }
 
 /// A complex mode shape as a real one: rotated by the angle that makes it as real as
@@ -313,11 +343,7 @@ pub(crate) fn ar2_record(
             }
         }
     }
-    Record {
-        channels: vec!["a".into(), "b".into(), "c".into()],
-        rate_hz: fs,
-        samples: y,
-    }
+    Record::accelerations(vec!["a".into(), "b".into(), "c".into()], fs, y)
 }
 
 #[cfg(test)]

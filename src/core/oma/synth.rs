@@ -15,7 +15,7 @@ use faer::Mat;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 
-use super::{OmaError, Record};
+use super::{OmaError, Quantity, Record};
 use crate::core::modal::solver_for;
 use crate::core::model::Model;
 
@@ -31,6 +31,9 @@ pub struct SynthOptions {
     /// Sensor noise standard deviation relative to each channel's RMS.
     pub noise_rel: f64,
     pub seed: u64,
+    /// What each channel measures (empty: accelerations everywhere); a velocity or
+    /// displacement channel reads the modal velocities or displacements instead.
+    pub quantities: Vec<Quantity>,
 }
 
 /// One mode of the truth, as the channels see it.
@@ -106,6 +109,18 @@ pub fn accelerations(
     let unit = Normal::new(0.0, 1.0).expect("unit normal");
     // Modal accelerations, samples × modes.
     let mut qdd = Mat::<f64>::zeros(samples, m);
+    let quantity = |c: usize| {
+        opts.quantities
+            .get(c)
+            .copied()
+            .unwrap_or(Quantity::Acceleration)
+    };
+    let lower = (0..channels.len()).any(|c| quantity(c) != Quantity::Acceleration);
+    let (mut qd, mut q) = if lower {
+        (Mat::<f64>::zeros(samples, m), Mat::<f64>::zeros(samples, m))
+    } else {
+        (Mat::<f64>::zeros(0, 0), Mat::<f64>::zeros(0, 0))
+    };
     let steps: Vec<[f64; 6]> = modes
         .iter()
         .map(|md| zoh_step(2.0 * std::f64::consts::PI * md.frequency_hz, zeta, dt))
@@ -118,6 +133,10 @@ pub fn accelerations(
             let w = 2.0 * std::f64::consts::PI * modes[j].frequency_hz;
             if k >= burn {
                 qdd[(k - burn, j)] = p - w * w * st.0 - 2.0 * zeta * w * st.1;
+                if lower {
+                    qd[(k - burn, j)] = st.1;
+                    q[(k - burn, j)] = st.0;
+                }
             }
             *st = (
                 a00 * st.0 + a01 * st.1 + b0 * p,
@@ -127,6 +146,16 @@ pub fn accelerations(
     }
     let phi = Mat::from_fn(m, channels.len(), |j, c| modes[j].shape[c]);
     let mut y = &qdd * &phi;
+    if lower {
+        let (yd, yv) = (&q * &phi, &qd * &phi);
+        for c in 0..channels.len() {
+            match quantity(c) {
+                Quantity::Acceleration => {}
+                Quantity::Velocity => y.col_mut(c).copy_from(yv.col(c)),
+                Quantity::Displacement => y.col_mut(c).copy_from(yd.col(c)),
+            }
+        }
+    }
     if opts.noise_rel > 0.0 {
         for c in 0..y.ncols() {
             let rms = (y.col(c).iter().map(|v| v * v).sum::<f64>() / samples as f64).sqrt();
@@ -141,6 +170,7 @@ pub fn accelerations(
             channels: channels.iter().map(|c| c.name.clone()).collect(),
             rate_hz: fs,
             samples: y,
+            quantities: (0..channels.len()).map(quantity).collect(),
         },
         modes,
     })

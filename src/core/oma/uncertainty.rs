@@ -38,7 +38,9 @@
 use faer::linalg::solvers::{DenseSolveCore, Solve, Svd};
 use faer::{Mat, MatRef, Par, c64};
 
-use super::ssi::{SsiOptions, block_hankel, hankel_svd, poles_from_svd};
+use super::ssi::{
+    SsiOptions, block_hankel, hankel_svd, poles_from_svd, powers, shapes_to_acceleration,
+};
 use super::{OmaError, Record};
 
 /// Lag covariances of a record cut into blocks (module docs, step 1).
@@ -123,6 +125,9 @@ pub struct Sensitivities {
     pub o: Mat<f64>,
     /// Per block: `Q1, Q2, Q3` (`n_max × n_max`) and `Q4` (`r × n_max`).
     pub q: Vec<[Mat<f64>; 4]>,
+    /// Per channel, the power of the continuous pole its shape entry is multiplied by
+    /// (channels of mixed quantities, [`super::Quantity`]); all 0 for accelerations.
+    pub powers: Vec<i32>,
 }
 
 /// Steps 2–3 of the module docs for the SVD ([`hankel_svd`]) of the Hankel matrix (the
@@ -194,6 +199,7 @@ pub fn sensitivities(
         rate_hz,
         o,
         q,
+        powers: vec![0; r],
     })
 }
 
@@ -300,7 +306,22 @@ impl Sensitivities {
         let mu = c64::new(l.norm().ln(), l.im.atan2(l.re)) * self.rate_hz;
         let wabs = mu.norm();
         let psi_j: Vec<c64> = (0..n).map(|i| psi[(i, j)]).collect();
-        let phi: Vec<c64> = (0..r).map(|i| c_psi[(i, j)]).collect();
+        // φ_i μ^{p_i}: every entry as an acceleration (`powers`), and its derivative
+        // along μ for the first-order terms below.
+        let scale: Vec<c64> = self.powers.iter().map(|&p| mu.powi(p)).collect();
+        let dscale: Vec<c64> = self
+            .powers
+            .iter()
+            .map(|&p| {
+                if p == 0 {
+                    c64::new(0.0, 0.0)
+                } else {
+                    mu.powi(p - 1) * p as f64
+                }
+            })
+            .collect();
+        let raw: Vec<c64> = (0..r).map(|i| c_psi[(i, j)]).collect();
+        let phi: Vec<c64> = raw.iter().zip(&scale).map(|(z, s_)| z * s_).collect();
         // g = ℓ_j M⁻¹ (row j of P); K = C Ψ Γ_j P.
         let g: Vec<c64> = (0..n).map(|i| p[(j, i)]).collect();
         let kmat = Mat::from_fn(r, n, |a_, b_| {
@@ -345,6 +366,8 @@ impl Sensitivities {
                     (0..n)
                         .map(|b_| psi_j[b_] * q4[(a_, b_)] + kmat[(a_, b_)] * w[b_])
                         .fold(c64::new(0.0, 0.0), |acc, x| acc + x)
+                        * scale[a_]
+                        + raw[a_] * dscale[a_] * dmu
                 })
                 .collect();
             let dalpha = (dphi[kappa] / phi[kappa]).im;
@@ -387,9 +410,11 @@ pub fn identify_with_sensitivities(
     let h = block_hankel(&cov.mean, s);
     let r = record.channels.len();
     let svd = hankel_svd(h.as_ref())?;
-    let poles = poles_from_svd(&svd, r, record.rate_hz, opts)?;
+    let mut poles = poles_from_svd(&svd, r, record.rate_hz, opts)?;
+    shapes_to_acceleration(&mut poles, &powers(record));
     let n_max = opts.order_max.min(*poles.orders.last().unwrap_or(&0));
-    let sens = sensitivities(&svd, &cov, s, n_max, record.rate_hz)?;
+    let mut sens = sensitivities(&svd, &cov, s, n_max, record.rate_hz)?;
+    sens.powers = powers(record);
     Ok((poles, sens))
 }
 
@@ -414,9 +439,16 @@ mod tests {
 
     /// The linear maps against central differences of the whole identification: the
     /// Hankel matrix moved along one block's `D_k` by ±ε, frequencies, damping and shape
-    /// entries re-identified at order 4; agreement to 1e-5 relative of the change.
+    /// entries re-identified at order 4; agreement to 1e-5 relative of the change. Run with
+    /// every channel an acceleration, and with channels of mixed quantities (entries times
+    /// `μ^p`, p = 0, 1, 2), whose first-order term in δμ the shape std then carries.
     #[test]
     fn first_order_changes_match_finite_differences() {
+        first_order_against_differences(&[0, 0, 0]);
+        first_order_against_differences(&[0, 1, 2]);
+    }
+
+    fn first_order_against_differences(powers: &[i32]) {
         let rec = record(3, 40_000);
         let refs = [0, 1, 2];
         let cov = block_covariances(rec.samples.as_ref(), &refs, 15, 20).unwrap();
@@ -426,6 +458,7 @@ mod tests {
         // One block only: its standard deviations are |δ| of that block.
         let one = Sensitivities {
             q: vec![sens.q[5].clone()],
+            powers: powers.to_vec(),
             ..sens.clone()
         };
         let lin = one.modes_at(4).unwrap();
@@ -436,10 +469,10 @@ mod tests {
                 mean: cov.mean.clone(),
                 deltas: vec![cov.deltas[0].clone(), cov.deltas[1].clone()],
             };
-            sensitivities(&hankel_svd(hp.as_ref()).unwrap(), &cp, 8, 4, rec.rate_hz)
-                .unwrap()
-                .modes_at(4)
-                .unwrap()
+            let mut s =
+                sensitivities(&hankel_svd(hp.as_ref()).unwrap(), &cp, 8, 4, rec.rate_hz).unwrap();
+            s.powers = powers.to_vec();
+            s.modes_at(4).unwrap()
         };
         let eps = 1e-2;
         let (p, m) = (at(eps), at(-eps));
