@@ -8,6 +8,7 @@ use anyhow::{Context, Result, bail};
 use serde::Deserialize;
 
 use crate::pipeline::TrackerConfig;
+use crate::pipeline::accel::IdentifySettings;
 use crate::pipeline::crosscheck::CrosscheckConfig;
 
 /// The bundled defaults.
@@ -24,6 +25,7 @@ pub struct Settings {
     pub zenoh: ZenohSettings,
     pub daemon: DaemonSettings,
     pub metrics: MetricsSettings,
+    pub identify: IdentifySettings,
 }
 
 /// `[zenoh]`: the session of `boltwatch run`.
@@ -145,6 +147,7 @@ impl Settings {
                 .list_separator(",")
                 .with_list_parse_key("zenoh.listen")
                 .with_list_parse_key("zenoh.connect")
+                .with_list_parse_key("identify.band_hz")
                 .source(Some(env)),
         );
         let what = file.map_or("the default configuration".to_string(), |f| {
@@ -169,6 +172,7 @@ impl Settings {
     fn validate(&self) -> Result<()> {
         self.tracker.validate()?;
         self.crosscheck.validate()?;
+        self.identify.validate()?;
         if self.structures.is_empty() {
             bail!("configuration key structures: watch at least one structure");
         }

@@ -7,10 +7,10 @@ use anyhow::{Context, Result, bail};
 use chrono::{DateTime, Utc};
 
 use super::write_json;
-use crate::contract::modal_set::{MeasuredMode, ModalSet, UNCERTAINTY_FLOOR};
 use crate::core::oma::Record;
-use crate::core::oma::identify::{IdentifiedMode, IdentifyOptions, identify};
+use crate::core::oma::identify::{IdentifyOptions, identify};
 use crate::io::record::read_csv;
+use crate::pipeline::accel::modal_set;
 
 #[derive(Debug, clap::Args)]
 pub struct IdentifyArgs {
@@ -130,7 +130,13 @@ pub fn run(args: &IdentifyArgs) -> Result<()> {
             + chrono::TimeDelta::microseconds(
                 ((w * window) as f64 / record.rate_hz * 1e6).round() as i64
             );
-        let set = modal_set(&structure, time, &record.channels, &modes, &args.input);
+        let set = modal_set(
+            &structure,
+            time,
+            &record.channels,
+            &modes,
+            format!("boltwatch identify {} (SSI-COV)", args.input.display()),
+        );
         println!(
             "window {} ({}): {} modes: {}",
             w + 1,
@@ -176,41 +182,5 @@ fn parse_band(s: &str) -> Result<(f64, f64)> {
     match v[..] {
         [lo, hi] if lo >= 0.0 && hi > lo && hi.is_finite() => Ok((lo, hi)),
         _ => bail!("--band `{s}`: need 0 ≤ lo < hi"),
-    }
-}
-
-/// The modal set of one window: shapes as identified (unit norm), `frequency_cov` = σ_f/f,
-/// `shape_std` per entry and `shape_nsd` (27) = RMS of the entry stds over the RMS of the
-/// shape, each uncertainty at least the contract's floor.
-fn modal_set(
-    structure: &str,
-    time: DateTime<Utc>,
-    channels: &[String],
-    modes: &[IdentifiedMode],
-    input: &std::path::Path,
-) -> ModalSet {
-    let floor = |x: f64| x.max(UNCERTAINTY_FLOOR);
-    ModalSet {
-        structure: structure.to_string(),
-        time,
-        channels: channels.to_vec(),
-        modes: modes
-            .iter()
-            .map(|m| {
-                let rms =
-                    |v: &[f64]| (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt();
-                MeasuredMode {
-                    frequency_hz: m.frequency_hz,
-                    frequency_cov: Some(floor(m.frequency_std / m.frequency_hz)),
-                    shape: Some(m.shape.iter().map(|&v| Some(v)).collect()),
-                    shape_nsd: Some(floor(rms(&m.shape_std) / rms(&m.shape))),
-                    shape_std: Some(m.shape_std.iter().map(|&v| Some(v.max(0.0))).collect()),
-                    damping_ratio: Some(m.damping.clamp(0.0, 0.999)),
-                    damping_std: Some(floor(m.damping_std)),
-                }
-            })
-            .collect(),
-        temperature_c: None,
-        source: Some(format!("boltwatch identify {} (SSI-COV)", input.display())),
     }
 }

@@ -10,6 +10,7 @@
 //! Schema version: every message is at v1 (`boltwatch.<name>.v1`); the v1 bytes are pinned
 //! by digests of every bundled replay and command output (`tests/suite/golden.rs`).
 
+pub mod accel;
 pub mod alert;
 pub mod checkpoint;
 pub mod crosscheck;

@@ -277,6 +277,7 @@ fn fingerprint(settings: &Settings) -> Value {
         "structures": settings.structures.iter().map(|s| json!({"name": s.name, "model": s.model})).collect::<Vec<_>>(),
         "tracker": settings.tracker,
         "crosscheck": settings.crosscheck,
+        "identify": settings.identify,
     })
 }
 

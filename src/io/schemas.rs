@@ -9,7 +9,7 @@ pub const TRUTH_SCHEMA: &str = "boltwatch.truth.v1";
 
 /// `(topic suffix, schema name, JSON Schema text)` of every channel, in the order channels
 /// are declared in an output file.
-pub const CHANNELS: [(&str, &str, &str); 6] = [
+pub const CHANNELS: [(&str, &str, &str); 7] = [
     (
         "modal",
         crate::contract::modal_set::MODAL_SET_SCHEMA,
@@ -32,6 +32,11 @@ pub const CHANNELS: [(&str, &str, &str); 6] = [
         include_str!("schemas/rejected.json"),
     ),
     ("truth", TRUTH_SCHEMA, include_str!("schemas/truth.json")),
+    (
+        "accel",
+        crate::contract::accel::Accel::SCHEMA,
+        include_str!("schemas/accel.json"),
+    ),
 ];
 
 /// The schema name and text of a topic suffix (`stiffness`, …).

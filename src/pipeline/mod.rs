@@ -10,6 +10,7 @@
 //! connection parameter and a model-inadequacy alert on ε ([`alerts`]). A set that fails
 //! validation is published as rejected and leaves the state unchanged.
 
+pub mod accel;
 pub mod alerts;
 mod config;
 pub mod crosscheck;
