@@ -103,6 +103,13 @@ pub fn summary_table(opts: &ReplayOptions, s: &ReplaySummary) -> String {
         opts.out.display(),
         s.outputs,
     );
+    if s.windows > 0 {
+        let _ = writeln!(
+            t,
+            "  of which {} identified from windows of raw data (accel blocks), published on …/modal",
+            s.windows
+        );
+    }
     for (name, c) in &s.counters {
         let _ = writeln!(
             t,

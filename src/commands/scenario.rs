@@ -1,6 +1,9 @@
 //! `boltwatch scenario NAME -o REC.mcap`: a synthetic monitoring recording
 //! ([`crate::scenario`]): the modal sets on `boltwatch/<structure>/modal` and, beside
-//! them, the true parameters of every set on `boltwatch/<structure>/truth`.
+//! them, the true parameters of every set on `boltwatch/<structure>/truth`. With
+//! `--accel SECONDS`, raw accelerations instead: a burst per set on
+//! `boltwatch/<structure>/accel`, so `replay` runs the whole chain from accelerations to
+//! alerts.
 
 use std::path::PathBuf;
 
@@ -8,9 +11,11 @@ use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
-use crate::contract::rfc3339;
+use crate::contract::accel::Accel;
+use crate::contract::{rfc3339, to_wire};
 use crate::core::model::Model;
 use crate::core::model::spec::ModelSpec;
+use crate::core::oma::synth::{SynthOptions, accelerations};
 use crate::io::mcap::{ChannelSpec, McapWriter, to_ns};
 use crate::io::schemas::TRUTH_SCHEMA;
 use crate::scenario::{Event, NAMES, Scenario};
@@ -49,6 +54,44 @@ pub struct ScenarioArgs {
     /// Output recording.
     #[arg(short, long)]
     pub out: PathBuf,
+    /// Raw accelerations instead of modal sets (`--accel SECONDS`).
+    #[command(flatten)]
+    pub raw: RawArgs,
+}
+
+/// `scenario --accel`: raw accelerations instead of modal sets.
+#[derive(Debug, Clone, clap::Args)]
+pub struct RawArgs {
+    /// Raw accelerations instead of modal sets: for each set, a burst of this many seconds
+    /// of every channel (boltwatch.accel.v1 blocks on `boltwatch/<structure>/accel`),
+    /// simulated in the time domain under white modal forces ([`crate::core::oma::synth`]).
+    #[arg(long)]
+    pub accel: Option<f64>,
+    /// Sampling rate of the accelerations, Hz (--accel).
+    #[arg(long, default_value_t = 1000.0)]
+    pub rate: f64,
+    /// Modal damping ratio of the simulated accelerations (--accel).
+    #[arg(long, default_value_t = 0.01)]
+    pub damping: f64,
+    /// Sensor noise, relative to each channel's RMS (--accel).
+    #[arg(long, default_value_t = 0.02)]
+    pub sensor_noise: f64,
+    /// Seconds of samples per accel block (--accel).
+    #[arg(long, default_value_t = 1.0)]
+    pub block: f64,
+}
+
+impl Default for RawArgs {
+    /// Modal sets, not raw data (the defaults of the options otherwise).
+    fn default() -> Self {
+        Self {
+            accel: None,
+            rate: 1000.0,
+            damping: 0.01,
+            sensor_noise: 0.02,
+            block: 1.0,
+        }
+    }
 }
 
 /// Rounds `v` to `digits` significant digits (0: unchanged).
@@ -106,8 +149,30 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
             Event::None => bail!("--event-day: the healthy scenario has no event"),
         }
     }
+    if let Some(w) = args.raw.accel {
+        let ok = |v: f64| v.is_finite() && v > 0.0;
+        if !(ok(w) && ok(args.raw.rate) && ok(args.raw.block) && args.raw.block <= w) {
+            bail!(
+                "--accel {w}, --rate {}, --block {}: need positive numbers, a block no longer than the burst",
+                args.raw.rate,
+                args.raw.block
+            );
+        }
+        if !(args.raw.damping > 0.0 && args.raw.damping < 1.0 && args.raw.sensor_noise >= 0.0) {
+            bail!(
+                "--damping {} must be in (0, 1) and --sensor-noise {} ≥ 0",
+                args.raw.damping,
+                args.raw.sensor_noise
+            );
+        }
+    }
+    let first = if args.raw.accel.is_some() {
+        "accel"
+    } else {
+        "modal"
+    };
     let channels = [
-        ChannelSpec::for_structure(&model.name, "modal")?,
+        ChannelSpec::for_structure(&model.name, first)?,
         ChannelSpec::for_structure(&model.name, "truth")?,
     ];
     let mut w = McapWriter::create(&args.out, &channels)?;
@@ -132,7 +197,28 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
         }
         let t = to_ns(set.time);
         let result = t.and_then(|t| {
-            w.write(modal_topic, t, &serde_json::to_vec(&set.to_json())?)?;
+            match args.raw.accel {
+                None => w.write(modal_topic, t, &serde_json::to_vec(&set.to_json())?)?,
+                Some(burst) => {
+                    let with_mass = match &sc.event {
+                        Event::Mass { at, mass, day } if sc.day(k) >= *day => {
+                            Some((at.as_str(), *mass))
+                        }
+                        _ => None,
+                    };
+                    write_burst(
+                        &mut w,
+                        modal_topic,
+                        &spec,
+                        with_mass,
+                        theta,
+                        set.time,
+                        burst,
+                        k,
+                        args,
+                    )?;
+                }
+            }
             let added = match &sc.event {
                 Event::Mass { at, mass, day } if sc.day(k) >= *day => {
                     json!({"at": at, "mass_kg": mass})
@@ -175,6 +261,71 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
         bytes as f64 / 1e6,
         args.out.display()
     );
+    Ok(())
+}
+
+/// Writes the accel blocks of one burst of `seconds` at θ, from `time` (`scenario --accel`).
+#[allow(clippy::too_many_arguments)]
+fn write_burst(
+    w: &mut McapWriter,
+    topic: &str,
+    spec: &ModelSpec,
+    mass: Option<(&str, f64)>,
+    theta: &[f64],
+    time: chrono::DateTime<chrono::Utc>,
+    seconds: f64,
+    k: usize,
+    args: &ScenarioArgs,
+) -> Result<()> {
+    let model = match mass {
+        Some((at, m)) => {
+            let mut with = spec.clone();
+            with.masses.push(crate::core::model::spec::MassSpec {
+                at: at.to_string(),
+                mass: m,
+                inertia: 0.0,
+            });
+            Model::from_spec(&with)?
+        }
+        None => Model::from_spec(spec)?,
+    };
+    let sim = accelerations(
+        &model,
+        theta,
+        &SynthOptions {
+            rate_hz: args.raw.rate,
+            duration_s: seconds,
+            damping: args.raw.damping,
+            max_frequency_hz: None,
+            noise_rel: args.raw.sensor_noise,
+            seed: args.seed.wrapping_mul(1_000_003).wrapping_add(k as u64),
+            quantities: vec![],
+        },
+    )?;
+    let rec = &sim.record;
+    let r = rec.channels.len();
+    let units = vec!["m/s^2".to_string(); r];
+    let per = (args.raw.block * args.raw.rate).round().max(1.0) as usize;
+    let mut at = 0;
+    while at < rec.len() {
+        let n = per.min(rec.len() - at);
+        let mut values = Vec::with_capacity(n * r);
+        for i in at..at + n {
+            values.extend((0..r).map(|c| rec.samples[(i, c)]));
+        }
+        let start =
+            time + chrono::TimeDelta::nanoseconds((at as f64 / args.raw.rate * 1e9).round() as i64);
+        let block = Accel::encode(
+            &model.name,
+            start,
+            args.raw.rate,
+            &rec.channels,
+            &units,
+            &values,
+        );
+        w.write(topic, to_ns(start)?, &to_wire(&block))?;
+        at += n;
+    }
     Ok(())
 }
 

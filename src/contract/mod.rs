@@ -42,6 +42,9 @@ pub enum Output {
     Alert(Box<Alert>),
     Crosscheck(Box<Crosscheck>),
     Rejected(Box<Rejected>),
+    /// A modal set identified from raw data ([`crate::pipeline::accel`]), published for
+    /// others on `modal` before it is tracked.
+    Modal(Box<modal_set::ModalSet>),
 }
 
 impl Output {
@@ -55,6 +58,7 @@ impl Output {
             Self::Alert(_) => "alerts",
             Self::Crosscheck(_) => "crosscheck",
             Self::Rejected(_) => "rejected",
+            Self::Modal(_) => "modal",
         }
     }
 
@@ -65,6 +69,7 @@ impl Output {
             Self::Alert(_) => Alert::SCHEMA,
             Self::Crosscheck(_) => Crosscheck::SCHEMA,
             Self::Rejected(_) => Rejected::SCHEMA,
+            Self::Modal(_) => modal_set::MODAL_SET_SCHEMA,
         }
     }
 
@@ -76,6 +81,7 @@ impl Output {
             Self::Alert(m) => m.time,
             Self::Crosscheck(m) => m.time,
             Self::Rejected(m) => m.time,
+            Self::Modal(m) => m.time,
         }
     }
 
@@ -85,6 +91,7 @@ impl Output {
             Self::Alert(m) => &m.structure,
             Self::Crosscheck(m) => &m.structure,
             Self::Rejected(m) => &m.structure,
+            Self::Modal(m) => &m.structure,
         }
     }
 
@@ -95,6 +102,7 @@ impl Output {
             Self::Alert(m) => to_wire(m),
             Self::Crosscheck(m) => to_wire(m),
             Self::Rejected(m) => to_wire(m),
+            Self::Modal(m) => serde_json::to_vec(&m.to_json()).expect("a Value serializes"),
         }
     }
 
@@ -106,6 +114,28 @@ impl Output {
             "alerts" => Self::Alert(serde_json::from_slice(bytes).map_err(bad)?),
             "crosscheck" => Self::Crosscheck(serde_json::from_slice(bytes).map_err(bad)?),
             "rejected" => Self::Rejected(serde_json::from_slice(bytes).map_err(bad)?),
+            "modal" => {
+                let v: serde_json::Value = serde_json::from_slice(bytes).map_err(bad)?;
+                let structure = v["structure"].as_str().unwrap_or_default();
+                let channels: Vec<String> = v["channels"]
+                    .as_array()
+                    .map(|a| {
+                        a.iter()
+                            .filter_map(|c| c.as_str().map(String::from))
+                            .collect()
+                    })
+                    .unwrap_or_default();
+                let ctx = modal_set::ValidationContext {
+                    structures: &[structure],
+                    model_channels: &channels,
+                    last_time: None,
+                    allow_equal_time: true,
+                    max_future: None,
+                };
+                let set = modal_set::parse_modal_set(bytes, &ctx)
+                    .map_err(|r| format!("{topic}: {}: {}", r.field, r.reason))?;
+                Self::Modal(Box::new(set))
+            }
             _ => return Err(format!("`{topic}` is not an output topic")),
         })
     }

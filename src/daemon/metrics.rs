@@ -94,7 +94,7 @@ impl Status {
                     .insert((a.kind, a.connection.clone()), (**a).clone());
             }
             Output::Crosscheck(_) => self.crosschecks += 1,
-            Output::Rejected(_) => {}
+            Output::Rejected(_) | Output::Modal(_) => {}
         }
     }
 }

@@ -263,6 +263,21 @@ pub fn read_tolerant(path: &Path) -> Result<(Vec<RecordedMessage>, Option<String
     Ok((out, None))
 }
 
+/// Calls `f` on every message of `path` in file order, as it is decompressed (a
+/// recording of raw data is never held decoded whole).
+pub fn for_each_message(
+    path: &Path,
+    mut f: impl FnMut(RecordedMessage) -> Result<()>,
+) -> Result<()> {
+    let buf = read_mcap_bytes(path)?;
+    let stream = mcap::MessageStream::new(&buf)
+        .with_context(|| format!("{} is not an MCAP file", path.display()))?;
+    for m in stream {
+        let m = m.with_context(|| format!("MCAP file {} is damaged", path.display()))?;
+        f(owned(m))?;
+    }
+    Ok(())
+}
 /// Modal sets, each with its structure, in log-time order; and the topics not read.
 pub type ModalSets = (Vec<(String, RecordedMessage)>, BTreeMap<String, u64>);
 

@@ -27,11 +27,14 @@ use serde_json::{Value, json};
 use super::checkpoint;
 use super::driver::{OffPath, Pace, Sink, dispatch};
 use super::mcap::{
-    ChannelSpec, McapWriter, RecordedMessage, from_ns, read_modal_sets, read_tolerant, to_ns, topic,
+    ChannelSpec, McapWriter, RecordedMessage, for_each_message, from_ns, read_tolerant, to_ns,
+    topic,
 };
 use super::model::load_structure;
+use crate::contract::modal_set::{ModalSet, Rejection};
 use crate::contract::{Alert, Checkpoint, Estimate, Output};
-use crate::pipeline::{Tracker, TrackerConfig, TrackerState};
+use crate::pipeline::accel::{AccelFront, FrontEvent, IdentifySettings};
+use crate::pipeline::{Action, Tracker, TrackerConfig, TrackerState};
 use crate::settings::Settings;
 
 /// Schema of the replay checkpoint file.
@@ -80,6 +83,8 @@ pub struct ReplaySummary {
     pub counters: BTreeMap<String, Counters>,
     pub crosschecks: usize,
     pub rejected: usize,
+    /// Modal sets identified from raw data (windows of accel blocks).
+    pub windows: usize,
     /// Messages in the output file.
     pub outputs: u64,
     /// Inputs processed by this run (not counting those before a resume).
@@ -115,6 +120,7 @@ impl ReplaySummary {
             }
             Output::Crosscheck(_) => self.crosschecks += 1,
             Output::Rejected(_) => self.rejected += 1,
+            Output::Modal(_) => self.windows += 1,
         }
     }
 }
@@ -281,6 +287,130 @@ fn fingerprint(settings: &Settings) -> Value {
     })
 }
 
+/// One input of a replay, for one structure.
+#[derive(Debug)]
+pub enum Input {
+    /// A modal set as recorded.
+    Recorded(RecordedMessage),
+    /// A modal set identified from a window of accel blocks ([`AccelFront`]).
+    Identified(Box<ModalSet>),
+    /// An accel block rejected, or a window left unfinished: at `log_time`, with the
+    /// first bytes of the payload, its size and digest.
+    Refused {
+        log_time: u64,
+        rejection: Rejection,
+        head: Vec<u8>,
+        size: usize,
+        digest: u128,
+    },
+}
+
+impl Input {
+    fn log_time(&self) -> Result<u64> {
+        match self {
+            Self::Recorded(m) => Ok(m.log_time),
+            Self::Identified(s) => to_ns(s.time),
+            Self::Refused { log_time, .. } => Ok(*log_time),
+        }
+    }
+}
+
+/// Inputs of each structure, in log-time order (a window's modal set at the time of its
+/// first sample), and the topics not read with their message counts.
+pub type Inputs = (Vec<(String, Input)>, BTreeMap<String, u64>);
+
+/// The inputs of the watched structures in `path`: modal sets as recorded, and accel blocks
+/// streamed through one [`AccelFront`] per structure (windows identified as the file is
+/// read, so only one window of raw data per structure is held; the samples left over at
+/// the end, short of a window, are reported).
+pub fn read_inputs(
+    path: &Path,
+    models: &HashMap<String, crate::io::driver::StructureModel>,
+    identify: &IdentifySettings,
+) -> Result<Inputs> {
+    let mut wanted: HashMap<String, (&str, bool)> = HashMap::new();
+    for name in models.keys() {
+        wanted.insert(topic(name, "modal"), (name.as_str(), false));
+        wanted.insert(topic(name, "accel"), (name.as_str(), true));
+    }
+    let mut fronts: BTreeMap<&str, (AccelFront, u64)> = BTreeMap::new();
+    let mut inputs = Vec::new();
+    let mut skipped = BTreeMap::new();
+    let mut blocks = 0usize;
+    let started = Instant::now();
+    let take = |s: &str, log_time: u64, e: FrontEvent, payload: &[u8]| match e {
+        FrontEvent::Set(set) => (s.to_string(), Input::Identified(set)),
+        FrontEvent::Dropped(rejection) => (
+            s.to_string(),
+            Input::Refused {
+                log_time,
+                rejection,
+                head: Vec::new(),
+                size: 0,
+                digest: crate::contract::digest(&[]),
+            },
+        ),
+        FrontEvent::Refused(rejection) => (
+            s.to_string(),
+            Input::Refused {
+                log_time,
+                rejection,
+                head: payload[..payload.len().min(crate::contract::REJECTED_PAYLOAD_LIMIT)]
+                    .to_vec(),
+                size: payload.len(),
+                digest: crate::contract::digest(payload),
+            },
+        ),
+    };
+    for_each_message(path, |m| {
+        match wanted.get(&m.topic) {
+            Some(&(s, false)) => inputs.push((s.to_string(), Input::Recorded(m))),
+            Some(&(s, true)) => {
+                blocks += 1;
+                let (front, last) = fronts.entry(s).or_insert_with(|| {
+                    let channels: Vec<String> = models[s]
+                        .1
+                        .channels()
+                        .iter()
+                        .map(|c| c.name.clone())
+                        .collect();
+                    (AccelFront::new(s, &channels, identify.clone()), 0)
+                });
+                *last = m.log_time;
+                for e in front.handle(&m.data) {
+                    inputs.push(take(s, m.log_time, e, &m.data));
+                }
+            }
+            None => *skipped.entry(m.topic).or_insert(0) += 1,
+        }
+        Ok(())
+    })?;
+    for (s, (front, last)) in &mut fronts {
+        if let Some(e) = front.finish() {
+            inputs.push(take(s, *last, e, &[]));
+        }
+    }
+    if blocks > 0 {
+        tracing::info!(
+            blocks,
+            windows = inputs
+                .iter()
+                .filter(|(_, i)| matches!(i, Input::Identified(_)))
+                .count(),
+            seconds = started.elapsed().as_secs_f64(),
+            "identified the accel blocks of {}",
+            path.display()
+        );
+    }
+    let mut keyed = Vec::with_capacity(inputs.len());
+    for i in inputs {
+        keyed.push((i.1.log_time()?, i));
+    }
+    // Stable: blocks and the windows they make keep their stream order.
+    keyed.sort_by_key(|(t, _)| *t);
+    Ok((keyed.into_iter().map(|(_, i)| i).collect(), skipped))
+}
+
 /// Replays `opts.recording` (module docs); `progress(done, total)` after every input.
 pub fn replay(
     opts: &ReplayOptions,
@@ -293,14 +423,18 @@ pub fn replay(
         .iter()
         .map(|s| s.name.as_str())
         .collect();
-    let (sets, skipped) = read_modal_sets(&opts.recording, &names)?;
+    let mut models = HashMap::new();
+    for s in &settings.structures {
+        models.insert(s.name.clone(), Arc::new(load_structure(s)?));
+    }
+    let (sets, skipped) = read_inputs(&opts.recording, &models, &settings.identify)?;
     if sets.is_empty() {
         bail!(
-            "recording {} has no modal sets of the watched structures ({}); its topics: {}",
+            "recording {} has no modal sets or accel blocks of the watched structures ({}); its topics: {}",
             opts.recording.display(),
             names
                 .iter()
-                .map(|s| topic(s, "modal"))
+                .flat_map(|s| [topic(s, "modal"), topic(s, "accel")])
                 .collect::<Vec<_>>()
                 .join(", "),
             if skipped.is_empty() {
@@ -318,13 +452,16 @@ pub fn replay(
         opts.recording.display(),
         opts.out.display()
     );
-    let mut models = HashMap::new();
+    // The identified modal sets go out on `modal` when the recording has raw data.
+    let raw = sets.iter().any(|(_, i)| !matches!(i, Input::Recorded(_)));
     let mut channels = Vec::new();
     for s in &settings.structures {
         for suffix in Output::TOPICS {
             channels.push(ChannelSpec::for_structure(&s.name, suffix)?);
         }
-        models.insert(s.name.clone(), Arc::new(load_structure(s)?));
+        if raw {
+            channels.push(ChannelSpec::for_structure(&s.name, "modal")?);
+        }
     }
     let tracker_cfg: TrackerConfig = settings.tracker.clone();
     let fp = fingerprint(settings);
@@ -484,11 +621,32 @@ pub fn replay(
         )
     };
 
-    for (k, (structure, msg)) in sets.iter().enumerate().skip(start) {
+    for (k, (structure, input)) in sets.iter().enumerate().skip(start) {
         let tracker = trackers
             .get_mut(structure)
             .expect("a tracker per watched structure");
-        let actions = tracker.handle(from_ns(msg.log_time), &msg.data);
+        let actions = match input {
+            Input::Recorded(msg) => tracker.handle(from_ns(msg.log_time), &msg.data),
+            Input::Identified(set) => {
+                let bytes = serde_json::to_vec(&set.to_json())?;
+                let mut a = vec![Action::Publish(Output::Modal(set.clone()))];
+                a.extend(tracker.handle(set.time, &bytes));
+                a
+            }
+            Input::Refused {
+                log_time,
+                rejection,
+                head,
+                size,
+                digest,
+            } => vec![Action::Publish(tracker.refuse(
+                from_ns(*log_time),
+                rejection,
+                head,
+                *size,
+                *digest,
+            ))],
+        };
         let d = dispatch(structure, actions, &mut lane, &mut out, Pace::Deterministic)?;
         if d.checkpoint_due {
             lane.drain(&mut out)?;

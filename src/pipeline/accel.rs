@@ -78,8 +78,10 @@ impl IdentifySettings {
 pub enum FrontEvent {
     /// The modal set of a full window.
     Set(Box<ModalSet>),
-    /// A block rejected, or a window left unfinished (its samples dropped), with why.
+    /// A block rejected, with why (the driver publishes it with the block's payload).
     Refused(Rejection),
+    /// A window left unfinished, its samples dropped, with why (no payload is to blame).
+    Dropped(Rejection),
 }
 
 /// The window being filled.
@@ -138,6 +140,15 @@ impl AccelFront {
         }
     }
 
+    /// The input has ended: the samples gathered towards a window that will not be
+    /// completed, reported.
+    pub fn finish(&mut self) -> Option<FrontEvent> {
+        self.partial
+            .as_ref()
+            .is_some_and(|p| p.len() > 0)
+            .then(|| self.drop_partial("the input ended"))
+    }
+
     /// The samples gathered towards the next window (reported when a run ends with them).
     pub fn pending_samples(&self) -> usize {
         self.partial.as_ref().map_or(0, Partial::len)
@@ -180,9 +191,15 @@ impl AccelFront {
                     ),
                 })];
             }
-            if !same || lag > half {
+            if (!same || lag > half) && p.len() == 0 {
+                // A new burst after a window that ended with its block: nothing to drop.
+                self.partial = None;
+            } else if !same || lag > half {
                 let why = if same {
-                    format!("a gap of {lag:.6} s before the block at {}", b.start)
+                    format!(
+                        "a gap of {lag:.6} s before the block at {}",
+                        crate::contract::rfc3339(b.start)
+                    )
                 } else {
                     "the rate, channels or units changed".to_string()
                 };
@@ -220,7 +237,7 @@ impl AccelFront {
 
     fn drop_partial(&mut self, why: &str) -> FrontEvent {
         let p = self.partial.take().expect("a partial window");
-        FrontEvent::Refused(Rejection {
+        FrontEvent::Dropped(Rejection {
             field: "start".into(),
             reason: format!(
                 "window from {} left unfinished ({why}): its {} samples ({:.3} s) are dropped",
@@ -354,7 +371,7 @@ mod tests {
             for e in f.handle(&payload(start, &v)) {
                 match e {
                     FrontEvent::Set(s) => sets.push(s),
-                    FrontEvent::Refused(r) => panic!("{r:?}"),
+                    FrontEvent::Refused(r) | FrontEvent::Dropped(r) => panic!("{r:?}"),
                 }
             }
         }
@@ -393,7 +410,7 @@ mod tests {
         let refused: Vec<&Rejection> = events
             .iter()
             .filter_map(|e| match e {
-                FrontEvent::Refused(r) => Some(r),
+                FrontEvent::Refused(r) | FrontEvent::Dropped(r) => Some(r),
                 _ => None,
             })
             .collect();

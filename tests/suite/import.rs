@@ -265,6 +265,7 @@ fn replay_bytes(name: &str, structure: &str, sets: usize, modes: usize, crossche
         event_day: None,
         shape_digits: 0,
         out: rec.clone(),
+        raw: Default::default(),
     })
     .unwrap();
     let run = |model: &Path, tag: &str| -> Vec<u8> {

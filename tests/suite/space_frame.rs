@@ -613,6 +613,7 @@ fn a_loosening_space_frame_connection_raises_its_alarm_alone() {
         event_day: None,
         shape_digits: 0,
         out: rec.clone(),
+        raw: Default::default(),
     })
     .unwrap();
     let mut settings = super::tracker::settings(&[

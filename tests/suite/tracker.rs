@@ -38,6 +38,7 @@ pub fn make_scenario(name: &str, sets: usize, days: f64, out: &Path) {
         event_day: None,
         shape_digits: 0,
         out: out.to_path_buf(),
+        raw: Default::default(),
     })
     .unwrap();
 }

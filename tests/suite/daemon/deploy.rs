@@ -34,6 +34,7 @@ fn python_zenoh_client_publishes_and_receives() {
         event_day: Some(3.0),
         shape_digits: 0,
         out: rec.clone(),
+        raw: Default::default(),
     })
     .unwrap();
     let reference = replayed(&rec, &d.join("ref.mcap"), &[]);
@@ -338,6 +339,7 @@ fn a_router_carries_two_structures_under_access_control() {
         event_day: None,
         shape_digits: 0,
         out: cant.clone(),
+        raw: Default::default(),
     })
     .unwrap();
     make_certs(&d);
