@@ -85,42 +85,59 @@ pub fn read_csv(path: &Path) -> Result<RecordFile> {
         }
     }
     let r = channels.len();
-    let mut times = Vec::new();
-    let mut values: Vec<f64> = Vec::new();
-    for (i, line) in lines {
-        let mut n = 0;
-        for (j, field) in line.split(',').enumerate() {
-            let v: f64 = field.trim().parse().map_err(|_| {
-                anyhow::anyhow!(
-                    "{name}: line {}, column {} (`{}`): `{}` is not a number",
-                    i + 1,
-                    j + 1,
-                    columns.get(j).unwrap_or(&"?"),
-                    field.trim()
-                )
-            })?;
-            if !v.is_finite() {
+    // The rows parsed in parallel chunks (the text is already in memory); the first
+    // error in file order is reported.
+    let rows: Vec<(usize, &str)> = lines.collect();
+    let parse_rows = |chunk: &[(usize, &str)]| -> Result<(Vec<f64>, Vec<f64>)> {
+        let mut times = Vec::with_capacity(chunk.len());
+        let mut values = Vec::with_capacity(chunk.len() * r);
+        for &(i, line) in chunk {
+            let mut n = 0;
+            for (j, field) in line.split(',').enumerate() {
+                let v: f64 = field.trim().parse().map_err(|_| {
+                    anyhow::anyhow!(
+                        "{name}: line {}, column {} (`{}`): `{}` is not a number",
+                        i + 1,
+                        j + 1,
+                        columns.get(j).unwrap_or(&"?"),
+                        field.trim()
+                    )
+                })?;
+                if !v.is_finite() {
+                    bail!(
+                        "{name}: line {}, column {} (`{}`): {v} is not finite",
+                        i + 1,
+                        j + 1,
+                        columns.get(j).unwrap_or(&"?")
+                    );
+                }
+                if j == 0 {
+                    times.push(v);
+                } else if j <= r {
+                    values.push(v);
+                }
+                n += 1;
+            }
+            if n != r + 1 {
                 bail!(
-                    "{name}: line {}, column {} (`{}`): {v} is not finite",
+                    "{name}: line {}: {n} fields, the header has {}",
                     i + 1,
-                    j + 1,
-                    columns.get(j).unwrap_or(&"?")
+                    r + 1
                 );
             }
-            if j == 0 {
-                times.push(v);
-            } else if j <= r {
-                values.push(v);
-            }
-            n += 1;
         }
-        if n != r + 1 {
-            bail!(
-                "{name}: line {}: {n} fields, the header has {}",
-                i + 1,
-                r + 1
-            );
-        }
+        Ok((times, values))
+    };
+    let parsed: Vec<Result<(Vec<f64>, Vec<f64>)>> = {
+        use rayon::prelude::*;
+        rows.par_chunks(4096).map(parse_rows).collect()
+    };
+    let mut times = Vec::with_capacity(rows.len());
+    let mut values: Vec<f64> = Vec::with_capacity(rows.len() * r);
+    for p in parsed {
+        let (t, v) = p?;
+        times.extend(t);
+        values.extend(v);
     }
     let n = times.len();
     if n < 3 {
@@ -139,7 +156,7 @@ pub fn read_csv(path: &Path) -> Result<RecordFile> {
     {
         bail!(
             "{name}: not uniformly sampled: line {} steps {:.6e} s after a median step of {dt:.6e} s (a gap or a repeated time?)",
-            k + 3,
+            rows[k + 1].0 + 1,
             w[1] - w[0]
         );
     }

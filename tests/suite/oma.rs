@@ -449,3 +449,22 @@ fn accelerations_of_a_loosening_raise_the_alarm_on_the_right_connection() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A gap in the time column is named by its line in the file, comments and blank lines
+/// counted.
+#[test]
+fn a_gap_is_named_by_its_line_in_the_file() {
+    let dir = std::env::temp_dir().join(format!("bw-oma-gap-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let csv = dir.join("gap.csv");
+    std::fs::write(
+        &csv,
+        "time_s,a\n# comment\n0,1\n\n0.001,2\n0.002,3\n0.005,4\n0.006,1\n",
+    )
+    .unwrap();
+    let err = boltwatch::io::record::read_csv(&csv)
+        .unwrap_err()
+        .to_string();
+    let _ = std::fs::remove_dir_all(&dir);
+    assert!(err.contains("line 7 steps 3.000000e-3 s"), "{err}");
+}
