@@ -468,3 +468,105 @@ fn a_gap_is_named_by_its_line_in_the_file() {
     let _ = std::fs::remove_dir_all(&dir);
     assert!(err.contains("line 7 steps 3.000000e-3 s"), "{err}");
 }
+
+/// Against a reference SSI-COV a user could run instead: `tests/python/ssi_cov_reference.py`
+/// (numpy only, written independently: its own covariances, stabilization and clustering,
+/// references of largest variance, jackknife σ over 10 blocks), in a virtual environment
+/// the test makes. On the 5-minute, 42-channel, 1 kHz lab-frame record both find the 11
+/// modes, and every frequency agrees within twice the combined σ, which the two estimates
+/// from the same data should (they differ by method, not by noise). Times, CSV parsing
+/// included, are printed (the note quotes them; no assertion on times).
+#[test]
+fn boltwatch_and_a_numpy_ssi_cov_agree_on_the_lab_frame() {
+    use std::process::Command;
+    let python = super::common::python_venv("py-numpy-venv", "import numpy", &["numpy==2.2.6"]);
+    let model = load_model("lab-frame");
+    let sim = accelerations(
+        &model,
+        &model.nominal_theta(),
+        &SynthOptions {
+            rate_hz: 1000.0,
+            duration_s: 300.0,
+            damping: 0.01,
+            max_frequency_hz: Some(400.0),
+            noise_rel: 0.02,
+            seed: 11,
+            quantities: vec![],
+        },
+    )
+    .unwrap();
+    let dir = std::env::temp_dir().join(format!("bw-oma-numpy-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let csv = dir.join("lab.csv");
+    boltwatch::io::record::write_csv(&csv, &sim.record, 0.0).unwrap();
+    let ours = dir.join("boltwatch-modes.json");
+    let started = std::time::Instant::now();
+    let run = Command::new(env!("CARGO_BIN_EXE_boltwatch"))
+        .args(["identify", "--input"])
+        .arg(&csv)
+        .arg("-o")
+        .arg(&ours)
+        .output()
+        .unwrap();
+    let t_ours = started.elapsed().as_secs_f64();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let theirs = dir.join("numpy-modes.json");
+    let started = std::time::Instant::now();
+    let run = Command::new(&python)
+        .arg(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/tests/python/ssi_cov_reference.py"
+        ))
+        .arg(&csv)
+        .arg("--out")
+        .arg(&theirs)
+        .output()
+        .unwrap();
+    let t_theirs = started.elapsed().as_secs_f64();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let ours: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&ours).unwrap()).unwrap();
+    let theirs: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&theirs).unwrap()).unwrap();
+    let _ = std::fs::remove_dir_all(&dir);
+    println!(
+        "boltwatch identify: {t_ours:.2} s; numpy SSI-COV: {t_theirs:.2} s (parse {:.2} s, identify {:.2} s)",
+        theirs["seconds_parse"], theirs["seconds_identify"]
+    );
+    let reference: Vec<(f64, f64)> = theirs["modes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|m| {
+            (
+                m["frequency_hz"].as_f64().unwrap(),
+                m["frequency_std"].as_f64().unwrap(),
+            )
+        })
+        .collect();
+    let modes = ours["modes"].as_array().unwrap();
+    assert_eq!(modes.len(), 11);
+    assert_eq!(reference.len(), 11, "{reference:?}");
+    for m in modes {
+        let f = m["frequency_hz"].as_f64().unwrap();
+        let s = f * m["frequency_cov"].as_f64().unwrap();
+        let &(fr, sr) = reference
+            .iter()
+            .min_by(|a, b| (a.0 - f).abs().total_cmp(&(b.0 - f).abs()))
+            .unwrap();
+        let combined = (s * s + sr * sr).sqrt();
+        println!(
+            "{f:9.4} ± {s:.4} Hz vs numpy {fr:9.4} ± {sr:.4} Hz: {:+.2} combined σ",
+            (f - fr) / combined
+        );
+        assert!((f - fr).abs() <= 2.0 * combined);
+    }
+}
