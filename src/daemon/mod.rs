@@ -129,6 +129,7 @@ pub async fn run(settings: Settings) -> Result<()> {
             ckpt,
             Duration::from_secs_f64(d.checkpoint_every_s),
             settings.crosscheck.clone(),
+            settings.identify.clone(),
         )?;
         let (tx, rx) = mpsc::sync_channel::<Input>(d.queue);
         let done = done_tx.clone();
@@ -197,6 +198,23 @@ pub async fn run(settings: Settings) -> Result<()> {
             .await
             .map_err(zerr("cannot declare the sample-miss listener"))?;
         subscribers.push(sub);
+        // Raw data: blocks in stream order into the same queue, identified by the worker
+        // window by window. Recovery fetches blocks missed in transport from the sensor's
+        // publisher cache; no history (old blocks would be out of stream order).
+        let accel_tx = tx.clone();
+        let accel_shared = shared.clone();
+        let accel_sub = session
+            .declare_subscriber(topic(&s.name, "accel"))
+            .recovery(RecoveryConfig::default().heartbeat())
+            .callback(move |sample| {
+                worker::enqueue_accel(&accel_tx, &accel_shared, sample.payload())
+            })
+            .await
+            .map_err(zerr(format!(
+                "cannot subscribe to {}",
+                topic(&s.name, "accel")
+            )))?;
+        subscribers.push(accel_sub);
         let q_shared = shared.clone();
         queryables.push(
             session

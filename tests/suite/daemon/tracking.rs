@@ -423,3 +423,118 @@ fn vm_hwm_kib(pid: i32) -> u64 {
         .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
         .unwrap()
 }
+
+/// Raw data live: 3 bursts of 30 s of simulated accelerations (42 channels at 500 Hz, in
+/// one-second `boltwatch.accel.v1` blocks) published on `boltwatch/lab-frame/accel` are
+/// windowed and identified by the daemon, which publishes each window's modal set on
+/// `…/modal` and tracks it: the modal sets and estimates are those a replay of the same
+/// recording gives, payload for payload. A block sent twice is rejected (field `start`)
+/// and the window goes on; the daemon's log holds the identified sets as its inputs.
+#[test]
+fn raw_accelerations_over_zenoh_are_identified_and_tracked() {
+    let d = tmp_dir("daemon-accel");
+    let rec = d.join("accel.mcap");
+    let run = bin()
+        .args(["scenario", "healthy", "--accel", "30", "--rate", "500"])
+        .args(["--sets", "3", "--days", "1", "-o"])
+        .arg(&rec)
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let identify = "[identify]\nwindow_s = 30.0\n";
+    let mut daemon = Daemon::start(&d, "", identify);
+    let s = client(&daemon.endpoint);
+    let outputs = Outputs::subscribe(&s);
+    let modal = s
+        .declare_subscriber(topic("lab-frame", "modal"))
+        .with(zenoh::handlers::FifoChannel::new(1000))
+        .wait()
+        .unwrap();
+    wait_status(&s, Duration::from_secs(30), "the daemon to answer", |_| {
+        true
+    });
+    let blocks: Vec<_> = read_all(&rec)
+        .unwrap()
+        .into_iter()
+        .filter(|m| m.topic == topic("lab-frame", "accel"))
+        .collect();
+    assert_eq!(blocks.len(), 90);
+    let publisher = s
+        .declare_publisher(topic("lab-frame", "accel"))
+        .congestion_control(zenoh::qos::CongestionControl::Block)
+        .wait()
+        .unwrap();
+    for (k, b) in blocks.iter().enumerate() {
+        publisher.put(b.data.clone()).wait().unwrap();
+        if k == 10 {
+            publisher.put(b.data.clone()).wait().unwrap();
+        }
+    }
+    let mut got = BTreeMap::new();
+    let mut sets: Vec<Value> = Vec::new();
+    let deadline = Instant::now() + Duration::from_secs(180);
+    loop {
+        outputs.drain(&mut got);
+        while let Ok(Some(sample)) = modal.try_recv() {
+            sets.push(serde_json::from_slice(&sample.payload().to_bytes()).unwrap());
+        }
+        let n = |k: &str| got.get(k).map_or(0, Vec::len);
+        if n("stiffness") == 3 && sets.len() == 3 && n("rejected") == 1 {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "outputs missing: {} modal sets, {:?}; log:\n{}",
+            sets.len(),
+            got.iter().map(|(k, v)| (k, v.len())).collect::<Vec<_>>(),
+            daemon.log()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert_eq!(
+        got["rejected"][0]["field"], "start",
+        "{:#}",
+        got["rejected"][0]
+    );
+    let settings = boltwatch::settings::Settings::load_with_env(
+        None,
+        [(
+            "BOLTWATCH__IDENTIFY__WINDOW_S".to_string(),
+            "30".to_string(),
+        )],
+    )
+    .unwrap();
+    // As the replay command and the daemon run their numerics: sequentially (faer's
+    // parallel SVD rounds differently).
+    boltwatch::core::sequential_numerics();
+    let reference = replayed_with(&rec, &d.join("ref.mcap"), settings);
+    let brief = |v: &[Value]| -> Vec<String> {
+        v.iter()
+            .map(|s| format!("{} {}", s["time"], s["modes"][0]["frequency_hz"]))
+            .collect()
+    };
+    let want = payloads(&reference, "modal");
+    assert_eq!(brief(&sets), brief(&want));
+    assert!(sets == want, "modal sets differ from replay");
+    assert_eq!(
+        got["stiffness"],
+        payloads(&reference, "stiffness"),
+        "estimates differ from replay"
+    );
+    drop(publisher);
+    drop(modal);
+    drop(outputs);
+    drop(s);
+    let exit = daemon.terminate();
+    assert!(exit.success(), "{exit:?}; log:\n{}", daemon.log());
+    let logs = daemon.log_files();
+    let inputs: usize = logs
+        .iter()
+        .map(|f| payloads(&read_all(f).unwrap(), "modal").len())
+        .sum();
+    assert_eq!(inputs, 3, "the identified sets are the log's inputs");
+}
