@@ -283,6 +283,7 @@ impl Scenario {
                         shape_std: None,
                         damping_ratio: None,
                         damping_std: None,
+                        label: None,
                     })
                     .collect(),
                 temperature_c: Some((temperature * 100.0).round() / 100.0),
@@ -290,6 +291,7 @@ impl Scenario {
                     "boltwatch scenario {} (seed {}), set {k}",
                     self.name, self.seed
                 )),
+                missing: Vec::new(),
             };
             sink(k, set, &theta)?;
         }

@@ -9,8 +9,9 @@ use chrono::{DateTime, Utc};
 use super::write_json;
 use crate::core::oma::Record;
 use crate::core::oma::identify::{IdentifyOptions, identify};
+use crate::core::oma::track::{Gate, ModeTrack};
 use crate::io::record::read_csv;
-use crate::pipeline::accel::modal_set;
+use crate::pipeline::accel::{label, modal_set};
 
 #[derive(Debug, clap::Args)]
 pub struct IdentifyArgs {
@@ -49,6 +50,7 @@ pub struct IdentifyArgs {
 pub fn run(args: &IdentifyArgs) -> Result<()> {
     let file = read_csv(&args.input)?;
     let record = &file.record;
+    let mut track = ModeTrack::new(Gate::default());
     let structure = match &args.model {
         Some(path) => {
             let (_, model) = super::load_description(path)?;
@@ -73,6 +75,12 @@ pub fn run(args: &IdentifyArgs) -> Result<()> {
                     model.name
                 );
             }
+            let hi = match &args.band {
+                Some(b) => parse_band(b)?.1,
+                None => 0.45 * record.rate_hz,
+            };
+            track = ModeTrack::from_model(&model, hi, Gate::default())
+                .with_context(|| format!("the modes of model `{}`", model.name))?;
             model.name.clone()
         }
         None => file.sidecar.structure.clone().unwrap_or_else(|| {
@@ -130,29 +138,37 @@ pub fn run(args: &IdentifyArgs) -> Result<()> {
             + chrono::TimeDelta::microseconds(
                 ((w * window) as f64 / record.rate_hz * 1e6).round() as i64
             );
-        let set = modal_set(
+        let mut set = modal_set(
             &structure,
             time,
             &record.channels,
             &modes,
             format!("boltwatch identify {} (SSI-COV)", args.input.display()),
         );
+        label(&mut set, &mut track);
         println!(
-            "window {} ({}): {} modes: {}",
+            "window {} ({}): {} modes: {}{}",
             w + 1,
             time.to_rfc3339_opts(chrono::SecondsFormat::Millis, true),
             modes.len(),
             modes
                 .iter()
-                .map(|m| format!(
-                    "{:.3} ± {:.3} Hz (ζ {:.2} ± {:.2} %)",
+                .zip(&set.modes)
+                .map(|(m, s)| format!(
+                    "{}: {:.3} ± {:.3} Hz (ζ {:.2} ± {:.2} %)",
+                    s.label.as_deref().unwrap_or("?"),
                     m.frequency_hz,
                     m.frequency_std,
                     100.0 * m.damping,
                     100.0 * m.damping_std
                 ))
                 .collect::<Vec<_>>()
-                .join(", ")
+                .join(", "),
+            if set.missing.is_empty() {
+                String::new()
+            } else {
+                format!("; missing: {}", set.missing.join(", "))
+            }
         );
         sets.push(set.to_json());
     }

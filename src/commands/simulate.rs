@@ -111,6 +111,7 @@ pub fn run(args: &SimulateArgs) -> Result<()> {
                 shape_std: None,
                 damping_ratio: None,
                 damping_std: None,
+                label: None,
             })
             .collect(),
         temperature_c: None,
@@ -128,6 +129,7 @@ pub fn run(args: &SimulateArgs) -> Result<()> {
                 .map(|i| format!(" --inject {i}"))
                 .collect::<String>()
         )),
+        missing: Vec::new(),
     };
     write_json(&args.out, &set.to_json())?;
     println!(

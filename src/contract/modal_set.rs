@@ -46,6 +46,7 @@ const TOP_FIELDS: &[&str] = &[
     "modes",
     "temperature_c",
     "source",
+    "missing",
 ];
 
 /// Fields of one mode.
@@ -57,6 +58,7 @@ const MODE_FIELDS: &[&str] = &[
     "shape_std",
     "damping_ratio",
     "damping_std",
+    "label",
 ];
 
 /// One measured modal set, validated.
@@ -75,6 +77,10 @@ pub struct ModalSet {
     pub temperature_c: Option<f64>,
     /// Free-text provenance (e.g. the identification run).
     pub source: Option<String>,
+    /// Labels of modes identified in earlier sets of this source and not in this one
+    /// (tracking across windows, issue 26): reported missing, not renumbered. Empty when
+    /// not given.
+    pub missing: Vec<String>,
 }
 
 /// One measured mode.
@@ -98,6 +104,9 @@ pub struct MeasuredMode {
     pub damping_ratio: Option<f64>,
     /// Standard deviation of `damping_ratio` (> 0); only with it.
     pub damping_std: Option<f64>,
+    /// The mode's identity across sets of one source (`mode 3`: paired with the model's
+    /// third mode); unique within the set.
+    pub label: Option<String>,
 }
 
 /// Why a modal set was rejected: the offending field (a JSON path such as `modes[2].shape[5]`) and the reason.
@@ -427,6 +436,38 @@ pub fn parse_modal_set(payload: &[u8], ctx: &ValidationContext) -> Result<ModalS
         .get("source")
         .map(|v| string(v, "source").map(str::to_string))
         .transpose()?;
+    let mut labels = std::collections::HashSet::new();
+    for (i, m) in modes.iter().enumerate() {
+        if let Some(l) = &m.label
+            && !labels.insert(l.as_str())
+        {
+            return Err(reject(
+                format!("modes[{i}].label"),
+                format!("`{}` labels an earlier mode too", capped(l, 64)),
+            ));
+        }
+    }
+    let missing = match obj.get("missing") {
+        None => Vec::new(),
+        Some(Value::Array(items)) => {
+            let mut out = Vec::with_capacity(items.len());
+            for (i, v) in items.iter().enumerate() {
+                let path = format!("missing[{i}]");
+                let l = label(v, &path)?;
+                if labels.contains(l) {
+                    return Err(reject(path, format!("`{l}` labels a mode of this set")));
+                }
+                out.push(l.to_string());
+            }
+            out
+        }
+        Some(other) => {
+            return Err(reject(
+                "missing",
+                format!("expected an array of labels, got {}", kind(other)),
+            ));
+        }
+    };
 
     Ok(ModalSet {
         structure: structure.to_string(),
@@ -435,6 +476,7 @@ pub fn parse_modal_set(payload: &[u8], ctx: &ValidationContext) -> Result<ModalS
         modes,
         temperature_c,
         source,
+        missing,
     })
 }
 
@@ -549,6 +591,10 @@ fn parse_mode(i: usize, v: &Value, n_channels: usize) -> Result<MeasuredMode, Re
     if damping_std.is_some() && damping_ratio.is_none() {
         return Err(reject(zs_path, "present on a mode without damping_ratio"));
     }
+    let label = obj
+        .get("label")
+        .map(|v| label(v, &format!("{path}.label")).map(str::to_string))
+        .transpose()?;
 
     Ok(MeasuredMode {
         frequency_hz,
@@ -558,7 +604,27 @@ fn parse_mode(i: usize, v: &Value, n_channels: usize) -> Result<MeasuredMode, Re
         shape_std,
         damping_ratio,
         damping_std,
+        label,
     })
+}
+
+/// The longest mode label, in bytes.
+pub const LABEL_LIMIT: usize = 64;
+
+/// A mode label: a non-empty string of at most [`LABEL_LIMIT`] bytes.
+fn label<'v>(v: &'v Value, path: &str) -> Result<&'v str, Rejection> {
+    let l = string(v, path)?;
+    if l.is_empty() || l.len() > LABEL_LIMIT {
+        return Err(reject(
+            path,
+            format!(
+                "a label has 1 to {LABEL_LIMIT} bytes, `{}` has {}",
+                capped(l, LABEL_LIMIT),
+                l.len()
+            ),
+        ));
+    }
+    Ok(l)
 }
 
 /// Rule: `shape_std` belongs to a mode with a shape, has one entry per shape entry, `null`
@@ -757,6 +823,9 @@ impl ModalSet {
                 if let Some(z) = m.damping_std {
                     mode.insert("damping_std".into(), z.into());
                 }
+                if let Some(l) = &m.label {
+                    mode.insert("label".into(), l.clone().into());
+                }
                 Value::Object(mode)
             })
             .collect();
@@ -766,6 +835,9 @@ impl ModalSet {
         }
         if let Some(s) = &self.source {
             obj.insert("source".into(), s.clone().into());
+        }
+        if !self.missing.is_empty() {
+            obj.insert("missing".into(), self.missing.clone().into());
         }
         Value::Object(obj)
     }

@@ -143,13 +143,7 @@ impl Worker {
         identify: IdentifySettings,
     ) -> Result<Self> {
         let name = tracker.model().name.clone();
-        let channels: Vec<String> = tracker
-            .model()
-            .channels()
-            .iter()
-            .map(|c| c.name.clone())
-            .collect();
-        let front = AccelFront::new(&name, &channels, identify);
+        let front = AccelFront::for_model(model.clone(), identify);
         let lane = OffPath::start(
             &format!("crosscheck-{name}"),
             HashMap::from([(name, model)]),

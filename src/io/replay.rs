@@ -368,13 +368,10 @@ pub fn read_inputs(
             Some(&(s, true)) => {
                 blocks += 1;
                 let (front, last) = fronts.entry(s).or_insert_with(|| {
-                    let channels: Vec<String> = models[s]
-                        .1
-                        .channels()
-                        .iter()
-                        .map(|c| c.name.clone())
-                        .collect();
-                    (AccelFront::new(s, &channels, identify.clone()), 0)
+                    (
+                        AccelFront::for_model(models[s].clone(), identify.clone()),
+                        0,
+                    )
                 });
                 *last = m.log_time;
                 for e in front.handle(&m.data) {

@@ -19,7 +19,9 @@ use chrono::{DateTime, TimeDelta, Utc};
 use crate::contract::accel::{AccelBlock, parse_accel};
 use crate::contract::modal_set::{MeasuredMode, ModalSet, Rejection, UNCERTAINTY_FLOOR};
 use crate::core::oma::identify::{IdentifiedMode, IdentifyOptions, identify};
+use crate::core::oma::track::{Gate, ModeTrack};
 use crate::core::oma::{Quantity, Record};
+use crate::io::driver::StructureModel;
 use faer::Mat;
 use serde::{Deserialize, Serialize};
 
@@ -120,16 +122,34 @@ pub struct AccelFront {
     model_channels: Vec<String>,
     settings: IdentifySettings,
     partial: Option<Partial>,
+    /// The model the modes are paired with and named after ([`ModeTrack::from_model`]).
+    model: Option<StructureModel>,
+    /// Mode identities across windows (made at the first window, when the band is known).
+    track: Option<ModeTrack>,
 }
 
 impl AccelFront {
+    /// A front for `structure` whose blocks may carry `model_channels`; modes are labelled
+    /// in the order they first appear.
     pub fn new(structure: &str, model_channels: &[String], settings: IdentifySettings) -> Self {
         Self {
             structure: structure.to_string(),
             model_channels: model_channels.to_vec(),
             settings,
             partial: None,
+            model: None,
+            track: None,
         }
+    }
+
+    /// A front for a watched structure: its modes are paired with the model's and named
+    /// after them (`mode k`).
+    pub fn for_model(model: StructureModel, settings: IdentifySettings) -> Self {
+        let m = &model.1;
+        let channels: Vec<String> = m.channels().iter().map(|c| c.name.clone()).collect();
+        let mut f = Self::new(&m.name, &channels, settings);
+        f.model = Some(model);
+        f
     }
 
     /// Takes one payload (module docs).
@@ -248,20 +268,40 @@ impl AccelFront {
         })
     }
 
-    fn identify_window(&self, record: &Record, start: DateTime<Utc>) -> FrontEvent {
+    fn identify_window(&mut self, record: &Record, start: DateTime<Utc>) -> FrontEvent {
         let opts = self.settings.options(record.rate_hz);
         let when = crate::contract::rfc3339(start);
         match identify(record, &opts) {
-            Ok(modes) if !modes.is_empty() => FrontEvent::Set(Box::new(modal_set(
-                &self.structure,
-                start,
-                &record.channels,
-                &modes,
-                format!(
-                    "boltwatch SSI-COV, window of {:.3} s from {when}",
-                    record.duration_s()
-                ),
-            ))),
+            Ok(modes) if !modes.is_empty() => {
+                let band_hi = opts.criteria.band_hz.1;
+                let model = self.model.clone();
+                let track = self.track.get_or_insert_with(|| {
+                    model
+                        .and_then(|m| {
+                            ModeTrack::from_model(&m.1, band_hi, Gate::default())
+                                .map_err(|e| {
+                                    tracing::warn!(
+                                        structure = m.1.name,
+                                        "the model's modes cannot be computed to name the identified ones ({e}): modes are labelled as they appear"
+                                    )
+                                })
+                                .ok()
+                        })
+                        .unwrap_or_else(|| ModeTrack::new(Gate::default()))
+                });
+                let mut set = modal_set(
+                    &self.structure,
+                    start,
+                    &record.channels,
+                    &modes,
+                    format!(
+                        "boltwatch SSI-COV, window of {:.3} s from {when}",
+                        record.duration_s()
+                    ),
+                );
+                label(&mut set, track);
+                FrontEvent::Set(Box::new(set))
+            }
             Ok(_) => FrontEvent::Refused(Rejection {
                 field: String::new(),
                 reason: format!("window from {when}: no mode identified"),
@@ -272,6 +312,31 @@ impl AccelFront {
             }),
         }
     }
+}
+
+/// Labels the modes of `set` ([`ModeTrack::assign`]) and lists the missing ones.
+pub fn label(set: &mut ModalSet, track: &mut ModeTrack) {
+    let shapes: Vec<Vec<f64>> = set
+        .modes
+        .iter()
+        .map(|m| {
+            m.shape
+                .as_ref()
+                .map(|s| s.iter().map(|v| v.unwrap_or(0.0)).collect())
+                .unwrap_or_default()
+        })
+        .collect();
+    let modes: Vec<(f64, &[f64])> = set
+        .modes
+        .iter()
+        .zip(&shapes)
+        .map(|(m, s)| (m.frequency_hz, s.as_slice()))
+        .collect();
+    let a = track.assign(&set.channels, &modes);
+    for (m, l) in set.modes.iter_mut().zip(a.labels) {
+        m.label = Some(l);
+    }
+    set.missing = a.missing;
 }
 
 /// The modal set of identified modes: shapes as identified (unit norm), `frequency_cov` =
@@ -300,10 +365,12 @@ pub fn modal_set(
                 shape_std: Some(m.shape_std.iter().map(|&v| Some(v.max(0.0))).collect()),
                 damping_ratio: Some(m.damping.clamp(0.0, 0.999)),
                 damping_std: Some(floor(m.damping_std)),
+                label: None,
             })
             .collect(),
         temperature_c: None,
         source: Some(source),
+        missing: Vec::new(),
     }
 }
 

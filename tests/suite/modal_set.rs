@@ -95,6 +95,7 @@ fn full_set_parses_to_expected_values() {
             shape_std: None,
             damping_ratio: None,
             damping_std: None,
+            label: None,
         }
     );
     assert_eq!(set.modes[2].shape, None);
@@ -126,6 +127,7 @@ fn round_trip_keeps_sub_seconds_and_awkward_floats() {
                 shape_std: None,
                 damping_ratio: None,
                 damping_std: None,
+                label: Some("mode 1".into()),
             },
             MeasuredMode {
                 frequency_hz: 1.0 / 3.0,
@@ -135,10 +137,12 @@ fn round_trip_keeps_sub_seconds_and_awkward_floats() {
                 shape_std: None,
                 damping_ratio: None,
                 damping_std: None,
+                label: None,
             },
         ],
         temperature_c: None,
         source: None,
+        missing: vec!["mode 2".into()],
     };
     let json = set.to_json();
     assert_eq!(json["time"], "2026-11-21T10:00:00.123456Z");
@@ -793,4 +797,36 @@ fn damping_fields_are_kept_and_checked() {
         v["modes"][1]["damping_std"] = json!(0.0);
     });
     assert_rejected(parse(&v), "modes[1].damping_std", &["must be > 0"]);
+}
+
+/// Mode labels and the missing list (tracking across windows, issue 26): kept through a
+/// round trip; a label twice, an empty or over-long label, a missing label that labels a
+/// mode of the set, and a `missing` that is not an array are each rejected by field.
+#[test]
+fn labels_and_missing_modes_are_kept_and_checked() {
+    let v = with(|v| {
+        v["modes"][0]["label"] = json!("mode 1");
+        v["modes"][1]["label"] = json!("mode 2");
+        v["missing"] = json!(["mode 4"]);
+    });
+    let set = parse(&v).unwrap();
+    assert_eq!(set.modes[0].label.as_deref(), Some("mode 1"));
+    assert_eq!(set.missing, vec!["mode 4".to_string()]);
+    assert_eq!(parse(&set.to_json()).unwrap(), set);
+    let v = with(|v| {
+        v["modes"][0]["label"] = json!("a");
+        v["modes"][2]["label"] = json!("a");
+    });
+    assert_rejected(parse(&v), "modes[2].label", &["earlier mode"]);
+    let v = with(|v| v["modes"][0]["label"] = json!(""));
+    assert_rejected(parse(&v), "modes[0].label", &["1 to 64 bytes"]);
+    let v = with(|v| v["modes"][0]["label"] = json!("x".repeat(65)));
+    assert_rejected(parse(&v), "modes[0].label", &["has 65"]);
+    let v = with(|v| {
+        v["modes"][0]["label"] = json!("a");
+        v["missing"] = json!(["b", "a"]);
+    });
+    assert_rejected(parse(&v), "missing[1]", &["labels a mode of this set"]);
+    let v = with(|v| v["missing"] = json!("a"));
+    assert_rejected(parse(&v), "missing", &["expected an array"]);
 }

@@ -570,3 +570,90 @@ fn boltwatch_and_a_numpy_ssi_cov_agree_on_the_lab_frame() {
         assert!((f - fr).abs() <= 2.0 * combined);
     }
 }
+
+/// Tracking across windows, with the model: three 60-s windows of the lab frame (42
+/// channels, 1 kHz) where the middle one lacks the two modes above 300 Hz (simulated
+/// without them). Every identified mode is named after the model's mode it is (`mode k`,
+/// the true k: frequency within 0.5 %), the middle window lists `mode 10` and `mode 11` as
+/// missing while the others keep their names, and the third window finds them again under
+/// the same names.
+#[test]
+fn modes_keep_their_names_across_windows_and_dropouts_are_reported() {
+    use std::process::Command;
+    let model = load_model("lab-frame");
+    let part = |max: f64, seed: u64| {
+        accelerations(
+            &model,
+            &model.nominal_theta(),
+            &SynthOptions {
+                rate_hz: 1000.0,
+                duration_s: 60.0,
+                damping: 0.01,
+                max_frequency_hz: Some(max),
+                noise_rel: 0.02,
+                seed,
+                quantities: vec![],
+            },
+        )
+        .unwrap()
+    };
+    let (a, b, c) = (part(400.0, 21), part(300.0, 22), part(400.0, 23));
+    let truth: Vec<f64> = a.modes.iter().map(|m| m.frequency_hz).collect();
+    assert_eq!(truth.len(), 11);
+    let n = a.record.len();
+    let mut rec = a.record.clone();
+    rec.samples = faer::Mat::from_fn(3 * n, rec.channels.len(), |k, j| match k / n {
+        0 => a.record.samples[(k, j)],
+        1 => b.record.samples[(k - n, j)],
+        _ => c.record.samples[(k - 2 * n, j)],
+    });
+    let dir = std::env::temp_dir().join(format!("bw-oma-track-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let csv = dir.join("three.csv");
+    boltwatch::io::record::write_csv(&csv, &rec, 0.0).unwrap();
+    let out = dir.join("sets.json");
+    let run = Command::new(env!("CARGO_BIN_EXE_boltwatch"))
+        .args(["identify", "--window", "60", "--input"])
+        .arg(&csv)
+        .arg("--model")
+        .arg(super::common::model_path("lab-frame"))
+        .arg("-o")
+        .arg(&out)
+        .output()
+        .unwrap();
+    println!("{}", String::from_utf8_lossy(&run.stdout));
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let sets: Vec<serde_json::Value> =
+        serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let _ = std::fs::remove_dir_all(&dir);
+    assert_eq!(sets.len(), 3);
+    for (w, set) in sets.iter().enumerate() {
+        let mut names = Vec::new();
+        for m in set["modes"].as_array().unwrap() {
+            let label = m["label"].as_str().unwrap();
+            let k: usize = label.strip_prefix("mode ").unwrap().parse().unwrap();
+            let f = m["frequency_hz"].as_f64().unwrap();
+            assert!(
+                (f / truth[k - 1] - 1.0).abs() < 5e-3,
+                "window {w}: {label} at {f:.3} Hz, the model's is {:.3}",
+                truth[k - 1]
+            );
+            names.push(k);
+        }
+        let missing: Vec<&str> = set["missing"]
+            .as_array()
+            .map(|a| a.iter().map(|v| v.as_str().unwrap()).collect())
+            .unwrap_or_default();
+        if w == 1 {
+            assert_eq!(names, (1..=9).collect::<Vec<_>>());
+            assert_eq!(missing, ["mode 10", "mode 11"]);
+        } else {
+            assert_eq!(names, (1..=11).collect::<Vec<_>>());
+            assert!(missing.is_empty(), "window {w}: {missing:?}");
+        }
+    }
+}

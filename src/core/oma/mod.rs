@@ -8,6 +8,8 @@
 //! * [`stabilize`]: the automatic choice of modes from the poles of many orders
 //!   (stabilization across orders, clustering of stable poles, rejection of spurious and
 //!   noise poles).
+//! * [`track`]: mode identity across windows (pairing with the modes seen before or with a
+//!   model's, missing modes reported).
 //! * [`synth`]: records simulated from a model (modal superposition under random forces,
 //!   modal damping, sensor noise), the exact truth the tests and `scenario` need.
 
@@ -15,6 +17,7 @@ pub mod identify;
 pub mod ssi;
 pub mod stabilize;
 pub mod synth;
+pub mod track;
 pub mod uncertainty;
 
 use faer::Mat;
