@@ -16,7 +16,8 @@ use crate::pipeline::accel::{label, modal_set};
 #[derive(Debug, clap::Args)]
 pub struct IdentifyArgs {
     /// Record: CSV with a header `time_s,<channel>,…`, uniformly sampled (a sidecar
-    /// FILE.json may give rate_hz, unit, structure, channels, start).
+    /// FILE.json may give rate_hz, unit or units, structure, channels, start), or an MCAP
+    /// recording of boltwatch.accel.v1 blocks (`.mcap`).
     #[arg(long)]
     pub input: PathBuf,
     /// Output: one boltwatch.modal_set.v1, or a list of them with --window.
@@ -48,6 +49,9 @@ pub struct IdentifyArgs {
 }
 
 pub fn run(args: &IdentifyArgs) -> Result<()> {
+    if args.input.extension().is_some_and(|e| e == "mcap") {
+        return run_mcap(args);
+    }
     let file = read_csv(&args.input)?;
     let record = &file.record;
     let mut track = ModeTrack::new(Gate::default());
@@ -199,4 +203,168 @@ fn parse_band(s: &str) -> Result<(f64, f64)> {
         [lo, hi] if lo >= 0.0 && hi > lo && hi.is_finite() => Ok((lo, hi)),
         _ => bail!("--band `{s}`: need 0 ≤ lo < hi"),
     }
+}
+
+/// `identify` of an MCAP recording of `boltwatch.accel.v1` blocks: the blocks of its one
+/// structure (the model's, with `--model`) through the accel front
+/// ([`crate::pipeline::accel`]), windows of `--window` seconds (without it, the whole
+/// recording, which must then be one stream without gaps). Blocks refused and samples
+/// left over are reported on stderr.
+fn run_mcap(args: &IdentifyArgs) -> Result<()> {
+    use crate::contract::accel::parse_accel;
+    use crate::pipeline::accel::{AccelFront, FrontEvent, IdentifySettings};
+    let model = match &args.model {
+        Some(path) => Some(super::load_description(path)?.1),
+        None => None,
+    };
+    let mut blocks = Vec::new();
+    crate::io::mcap::for_each_message(&args.input, |m| {
+        if let Some(s) = m
+            .topic
+            .strip_prefix("boltwatch/")
+            .and_then(|t| t.strip_suffix("/accel"))
+        {
+            blocks.push((s.to_string(), m.data));
+        }
+        Ok(())
+    })?;
+    let mut structures: Vec<&str> = blocks.iter().map(|(s, _)| s.as_str()).collect();
+    structures.sort_unstable();
+    structures.dedup();
+    let structure = match (&model, &structures[..]) {
+        (_, []) => bail!(
+            "{}: no boltwatch/<structure>/accel messages",
+            args.input.display()
+        ),
+        (Some(m), _) if structures.contains(&m.name.as_str()) => m.name.clone(),
+        (Some(m), _) => bail!(
+            "{}: no accel blocks of model `{}` (structures: {})",
+            args.input.display(),
+            m.name,
+            structures.join(", ")
+        ),
+        (None, [one]) => one.to_string(),
+        (None, many) => bail!(
+            "{}: accel blocks of several structures ({}): give --model",
+            args.input.display(),
+            many.join(", ")
+        ),
+    };
+    let mine: Vec<&[u8]> = blocks
+        .iter()
+        .filter(|(s, _)| *s == structure)
+        .map(|(_, d)| d.as_slice())
+        .collect();
+    // The stream's rate and channels from its first block that reads.
+    let (rate, channels, total) = {
+        let mut first = None;
+        let mut samples = 0usize;
+        for (k, d) in mine.iter().enumerate() {
+            match parse_accel(d) {
+                Ok(b) => {
+                    samples += b.len();
+                    first.get_or_insert((b.rate_hz, b.channels));
+                }
+                Err(r) => eprintln!("block {k}: refused: {}: {}", r.field, r.reason),
+            }
+        }
+        let (rate, channels) = first
+            .ok_or_else(|| anyhow::anyhow!("{}: no readable accel block", args.input.display()))?;
+        (rate, channels, samples)
+    };
+    let window_s = match args.window {
+        Some(w) if w > 0.0 && w.is_finite() => w,
+        Some(w) => bail!("--window {w}: must be a positive number of seconds"),
+        None => total as f64 / rate,
+    };
+    let settings = IdentifySettings {
+        window_s,
+        order_max: args.order_max,
+        block_rows: args.block_rows,
+        blocks: args.blocks,
+        band_hz: match &args.band {
+            Some(b) => {
+                let (lo, hi) = parse_band(b)?;
+                vec![lo, hi]
+            }
+            None => vec![],
+        },
+    };
+    settings.validate()?;
+    let mut front = match model {
+        Some(m) => {
+            let known: Vec<&str> = m.channels().iter().map(|c| c.name.as_str()).collect();
+            if let Some(c) = channels.iter().find(|c| !known.contains(&c.as_str())) {
+                bail!(
+                    "{}: channel `{c}` is not a channel of model `{}`",
+                    args.input.display(),
+                    m.name
+                );
+            }
+            AccelFront::for_model(std::sync::Arc::new((None, m)), settings)
+        }
+        None => AccelFront::new(&structure, &channels, settings),
+    };
+    let mut sets = Vec::new();
+    let mut report = |e: FrontEvent, k: Option<usize>| match e {
+        FrontEvent::Set(set) => {
+            println!(
+                "window from {}: {} modes: {}{}",
+                crate::contract::rfc3339(set.time),
+                set.modes.len(),
+                set.modes
+                    .iter()
+                    .map(|m| format!(
+                        "{}: {:.3} Hz",
+                        m.label.as_deref().unwrap_or("?"),
+                        m.frequency_hz
+                    ))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                if set.missing.is_empty() {
+                    String::new()
+                } else {
+                    format!("; missing: {}", set.missing.join(", "))
+                }
+            );
+            sets.push(set.to_json());
+        }
+        FrontEvent::Refused(r) | FrontEvent::Dropped(r) => eprintln!(
+            "{}{}: {}",
+            k.map(|k| format!("block {k}: ")).unwrap_or_default(),
+            if r.field.is_empty() {
+                "window"
+            } else {
+                &r.field
+            },
+            r.reason
+        ),
+    };
+    for (k, d) in mine.iter().enumerate() {
+        for e in front.handle(d) {
+            report(e, Some(k));
+        }
+    }
+    if let Some(e) = front.finish() {
+        report(e, None);
+    }
+    if sets.is_empty() {
+        bail!(
+            "{}: no window identified{}",
+            args.input.display(),
+            if args.window.is_none() {
+                " (without --window the whole recording is one window, and it has gaps: give --window)"
+            } else {
+                ""
+            }
+        );
+    }
+    let out = if args.window.is_none() && sets.len() == 1 {
+        sets.pop().expect("one set")
+    } else {
+        serde_json::Value::Array(sets)
+    };
+    write_json(&args.out, &out)?;
+    println!("written: {}", args.out.display());
+    Ok(())
 }

@@ -663,3 +663,72 @@ fn modes_keep_their_names_across_windows_and_dropouts_are_reported() {
         }
     }
 }
+
+/// `identify` reads an MCAP recording of accel blocks: two 30-s bursts of `scenario
+/// --accel` give two modal sets with the five simulated modes named after the model's;
+/// without `--window` the recording (two bursts, a gap between) is refused with exit code
+/// 2, saying so.
+#[test]
+fn identify_reads_accel_recordings() {
+    use std::process::Command;
+    let dir = std::env::temp_dir().join(format!("bw-oma-mcap-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let bin = || {
+        let mut c = Command::new(env!("CARGO_BIN_EXE_boltwatch"));
+        c.current_dir(env!("CARGO_MANIFEST_DIR"));
+        c
+    };
+    let rec = dir.join("two.mcap");
+    let run = bin()
+        .args(["scenario", "healthy", "--accel", "30", "--rate", "500"])
+        .args(["--sets", "2", "--days", "1", "-o"])
+        .arg(&rec)
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let out = dir.join("sets.json");
+    let run = bin()
+        .args(["identify", "--window", "30", "--model"])
+        .arg(super::common::model_path("lab-frame"))
+        .arg("--input")
+        .arg(&rec)
+        .arg("-o")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let sets: Vec<serde_json::Value> =
+        serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    assert_eq!(sets.len(), 2);
+    for s in &sets {
+        let labels: Vec<&str> = s["modes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|m| m["label"].as_str().unwrap())
+            .collect();
+        assert_eq!(labels, ["mode 1", "mode 2", "mode 3", "mode 4", "mode 5"]);
+    }
+    let run = bin()
+        .args(["identify", "--input"])
+        .arg(&rec)
+        .arg("-o")
+        .arg(dir.join("one.json"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&run.stderr).into_owned();
+    let _ = std::fs::remove_dir_all(&dir);
+    assert_eq!(run.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("gap of") && err.contains("give --window"),
+        "{err}"
+    );
+}
