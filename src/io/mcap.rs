@@ -263,21 +263,75 @@ pub fn read_tolerant(path: &Path) -> Result<(Vec<RecordedMessage>, Option<String
     Ok((out, None))
 }
 
-/// Calls `f` on every message of `path` in file order, as it is decompressed (a
-/// recording of raw data is never held decoded whole).
+/// Calls `f` on every message of `path` in file order, reading the file in pieces and
+/// decompressing one chunk at a time (mcap's sans-I/O [`mcap::sans_io::LinearReader`]):
+/// the memory held is a chunk and the message being handled, whatever the size of the
+/// recording (a month of raw data is never in memory).
 pub fn for_each_message(
     path: &Path,
     mut f: impl FnMut(RecordedMessage) -> Result<()>,
 ) -> Result<()> {
-    let buf = read_mcap_bytes(path)?;
-    let stream = mcap::MessageStream::new(&buf)
-        .with_context(|| format!("{} is not an MCAP file", path.display()))?;
-    for m in stream {
-        let m = m.with_context(|| format!("MCAP file {} is damaged", path.display()))?;
-        f(owned(m))?;
+    use mcap::records::Record;
+    use mcap::sans_io::{LinearReadEvent, LinearReader};
+    use std::io::Read;
+    let name = path.display();
+    let mut file = File::open(path).with_context(|| format!("cannot read {name}"))?;
+    let mut magic = [0u8; 8];
+    let got = file.read(&mut magic)?;
+    if got < MAGIC.len() || magic[..] != *MAGIC {
+        bail!("{name} is not an MCAP file (it does not start with the MCAP magic bytes)");
+    }
+    std::io::Seek::rewind(&mut file)?;
+    // Schema id → (name, encoding); channel id → (topic, schema, message encoding).
+    let mut schemas: HashMap<u16, (String, String)> = HashMap::new();
+    let mut channels: HashMap<u16, (String, Option<(String, String)>, String)> = HashMap::new();
+    let mut reader = LinearReader::new();
+    while let Some(event) = reader.next_event() {
+        match event.with_context(|| format!("MCAP file {name} is damaged"))? {
+            LinearReadEvent::ReadRequest(need) => {
+                let n = file
+                    .read(reader.insert(need))
+                    .with_context(|| format!("cannot read {name}"))?;
+                reader.notify_read(n);
+            }
+            LinearReadEvent::Record { data, opcode } => {
+                match mcap::parse_record(opcode, data)
+                    .with_context(|| format!("MCAP file {name} is damaged"))?
+                {
+                    Record::Schema { header, .. } => {
+                        schemas.insert(header.id, (header.name, header.encoding));
+                    }
+                    Record::Channel(c) => {
+                        let schema = schemas.get(&c.schema_id).cloned();
+                        channels.insert(c.id, (c.topic, schema, c.message_encoding));
+                    }
+                    Record::Message { header, data } => {
+                        let (topic, schema, encoding) =
+                            channels.get(&header.channel_id).ok_or_else(|| {
+                                anyhow!(
+                                    "MCAP file {name} is damaged: a message on undeclared channel {}",
+                                    header.channel_id
+                                )
+                            })?;
+                        f(RecordedMessage {
+                            topic: topic.clone(),
+                            schema: schema.as_ref().map(|s| s.0.clone()),
+                            schema_encoding: schema.as_ref().map(|s| s.1.clone()),
+                            message_encoding: encoding.clone(),
+                            sequence: header.sequence,
+                            log_time: header.log_time,
+                            publish_time: header.publish_time,
+                            data: data.into_owned(),
+                        })?;
+                    }
+                    _ => {}
+                }
+            }
+        }
     }
     Ok(())
 }
+
 /// Modal sets, each with its structure, in log-time order; and the topics not read.
 pub type ModalSets = (Vec<(String, RecordedMessage)>, BTreeMap<String, u64>);
 

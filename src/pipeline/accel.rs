@@ -9,8 +9,13 @@
 //! that starts later (a gap) or changes the stream ends the window unfinished: the samples
 //! gathered are dropped and reported (a window is never stitched across a gap). A block
 //! that starts before the end of the previous one (a repeat or a clock step back) is
-//! rejected and the window goes on. Nothing is dropped silently: every block rejected and
-//! every window left unfinished is an [`FrontEvent::Refused`] the driver publishes.
+//! rejected and the window goes on. Nothing is dropped silently: every block rejected is a
+//! [`FrontEvent::Refused`], every window left unfinished a [`FrontEvent::Dropped`], and
+//! the driver publishes both on `rejected`.
+//!
+//! **Identity.** Each window's modes are labelled across windows ([`ModeTrack`]): after the
+//! model's modes when the front has the model ([`AccelFront::for_model`]), and the modes
+//! seen before and not found are listed in the set's `missing`.
 //!
 //! Memory is bounded by one window (and one block) per structure.
 
