@@ -283,8 +283,9 @@ pub fn for_each_message(
     }
     std::io::Seek::rewind(&mut file)?;
     // Schema id → (name, encoding); channel id → (topic, schema, message encoding).
-    let mut schemas: HashMap<u16, (String, String)> = HashMap::new();
-    let mut channels: HashMap<u16, (String, Option<(String, String)>, String)> = HashMap::new();
+    type Schema = (String, String);
+    let mut schemas: HashMap<u16, Schema> = HashMap::new();
+    let mut channels: HashMap<u16, (String, Option<Schema>, String)> = HashMap::new();
     let mut reader = LinearReader::new();
     while let Some(event) = reader.next_event() {
         match event.with_context(|| format!("MCAP file {name} is damaged"))? {
