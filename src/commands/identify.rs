@@ -168,11 +168,7 @@ pub fn run(args: &IdentifyArgs) -> Result<()> {
                 ))
                 .collect::<Vec<_>>()
                 .join(", "),
-            if set.missing.is_empty() {
-                String::new()
-            } else {
-                format!("; missing: {}", set.missing.join(", "))
-            }
+            missing_note(&set)
         );
         sets.push(set.to_json());
     }
@@ -191,6 +187,15 @@ pub fn run(args: &IdentifyArgs) -> Result<()> {
     write_json(&args.out, &out)?;
     println!("written: {}", args.out.display());
     Ok(())
+}
+
+/// `; missing: mode 10, …` for a set that lists missing modes, else nothing.
+fn missing_note(set: &crate::contract::modal_set::ModalSet) -> String {
+    if set.missing.is_empty() {
+        String::new()
+    } else {
+        format!("; missing: {}", set.missing.join(", "))
+    }
 }
 
 fn parse_band(s: &str) -> Result<(f64, f64)> {
@@ -321,11 +326,7 @@ fn run_mcap(args: &IdentifyArgs) -> Result<()> {
                     ))
                     .collect::<Vec<_>>()
                     .join(", "),
-                if set.missing.is_empty() {
-                    String::new()
-                } else {
-                    format!("; missing: {}", set.missing.join(", "))
-                }
+                missing_note(&set)
             );
             sets.push(set.to_json());
         }

@@ -16,7 +16,7 @@ use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 
 use super::{OmaError, Quantity, Record};
-use crate::core::modal::solver_for;
+use crate::core::modal::{EigenPairs, solver_for};
 use crate::core::model::Model;
 
 /// Options of [`accelerations`].
@@ -73,19 +73,8 @@ pub fn accelerations(
             model.name
         )));
     }
-    // Enough modes to pass f_max (or every mode the model has).
-    let mut solver = solver_for(model).map_err(|e| OmaError::Numerical(e.to_string()))?;
-    let available = model.n_dof() - model.massless_dofs().len();
-    let mut n = 12.min(available);
-    let pairs = loop {
-        let pairs = solver
-            .solve(model, theta, n)
-            .map_err(|e| OmaError::Numerical(e.to_string()))?;
-        if pairs.frequency_hz(n - 1) > f_max || n == available {
-            break pairs;
-        }
-        n = (2 * n).min(available);
-    };
+    let pairs = modes_past(model, theta, f_max)?;
+    let n = pairs.lambda.len();
     let modes: Vec<TrueMode> = (0..n)
         .filter(|&k| pairs.frequency_hz(k) <= f_max)
         .map(|k| {
@@ -174,6 +163,23 @@ pub fn accelerations(
         },
         modes,
     })
+}
+
+/// The lowest modes of `model` at θ, enough to pass `f_max` (or every mode it has): 12,
+/// then twice as many until the last is above `f_max`.
+pub fn modes_past(model: &Model, theta: &[f64], f_max: f64) -> Result<EigenPairs, OmaError> {
+    let mut solver = solver_for(model).map_err(|e| OmaError::Numerical(e.to_string()))?;
+    let available = model.n_dof() - model.massless_dofs().len();
+    let mut n = 12.min(available);
+    loop {
+        let pairs = solver
+            .solve(model, theta, n)
+            .map_err(|e| OmaError::Numerical(e.to_string()))?;
+        if pairs.frequency_hz(n - 1) > f_max || n == available {
+            return Ok(pairs);
+        }
+        n = (2 * n).min(available);
+    }
 }
 
 /// The exact zero-order-hold step of `q̈ + 2ζω q̇ + ω² q = p` over `dt`:

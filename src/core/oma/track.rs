@@ -18,7 +18,7 @@
 
 use super::OmaError;
 use super::ssi::mac_real;
-use crate::core::modal::solver_for;
+use super::synth::modes_past;
 use crate::core::model::Model;
 
 /// The gating rule (module docs).
@@ -90,18 +90,8 @@ impl ModeTrack {
     /// references, read on the model's channels and labelled `mode k`.
     pub fn from_model(model: &Model, max_frequency_hz: f64, gate: Gate) -> Result<Self, OmaError> {
         let theta = model.nominal_theta();
-        let mut solver = solver_for(model).map_err(|e| OmaError::Numerical(e.to_string()))?;
-        let available = model.n_dof() - model.massless_dofs().len();
-        let mut n = 12.min(available);
-        let pairs = loop {
-            let pairs = solver
-                .solve(model, &theta, n)
-                .map_err(|e| OmaError::Numerical(e.to_string()))?;
-            if pairs.frequency_hz(n - 1) > max_frequency_hz || n == available {
-                break pairs;
-            }
-            n = (2 * n).min(available);
-        };
+        let pairs = modes_past(model, &theta, max_frequency_hz)?;
+        let n = pairs.lambda.len();
         let channels: Vec<String> = model.channels().iter().map(|c| c.name.clone()).collect();
         let refs = (0..n)
             .filter(|&k| k == 0 || pairs.frequency_hz(k) <= max_frequency_hz)
