@@ -128,7 +128,8 @@ fn bench_iteration(c: &mut Criterion) {
 /// away): the φ substep (21) for the six modes, which is the alternating solver's
 /// iteration (its substeps (22)–(23) are a few sparse products), and the reduced
 /// objective with its gradient and Hessian, which is a Newton iteration. Each mode is one
-/// sparse LU of its augmented least-squares system (2n + 66 = 62,982 unknowns).
+/// sparse LDLᵀ of its shifted stiffness (31,458 unknowns) and 66 solves for the data term
+/// (`bayesian/shifted.rs`).
 fn bench_bayesian(c: &mut Criterion) {
     use boltwatch::core::updating::bayesian::{BayesProblem, BayesSettings};
     let model = four_bay();

@@ -360,14 +360,13 @@ fn refine_theta_maps_simplified_onto_fine_lab_frame() {
     }
 }
 
-/// The sparse φ substeps (augmented system, sparse LU) against the dense ones (Householder
-/// QR) on the lab frame, 9 noisy modes, at σ_c from 1 (the model equation nearly a
+/// The sparse φ substeps (the shifted stiffness's LDLᵀ and the Woodbury solution, refined;
+/// `bayesian/shifted.rs`) against the dense ones (Householder QR) on the lab frame, 9 noisy modes, at σ_c from 1 (the model equation nearly a
 /// constraint: the Schur complement cancels ~1e10 of its terms) to 1e6, at a point off the
 /// minimum: value, gradient, Hessian, data sensitivity and φ agree to 3e-8 relative (each
 /// in the norm of its block). Both are backward stable, so they differ by a modest multiple
 /// of the condition number of `C = [σ_c⁻¹A; W^{1/2}L_o]` times 1e-16, which grows like
-/// 1/σ_c: measured 1.0e-8 (Hessian) at σ_c = 1, 3e-10 at 100, 1e-12 at 1e6. The scale α
-/// of the augmented system changes none of these by more than a factor 1.5 over 1e-4…1e4.
+/// 1/σ_c. None of these solves falls back to the augmented system's LU.
 #[test]
 fn sparse_and_dense_phi_substeps_agree() {
     let model = load_model("lab-frame");
@@ -405,6 +404,61 @@ fn sparse_and_dense_phi_substeps_agree() {
             .zip(errs)
         {
             assert!(e < 3e-8, "σ_c = {sigma_c}: {what} differs by {e:e}");
+        }
+        assert_eq!(sparse.augmented_fallbacks(), 0, "σ_c = {sigma_c}");
+    }
+}
+
+/// The sparse φ substeps where the shifted stiffness `K(θ) − λM` is singular to working
+/// precision (λ an eigenvalue of `K(θ)` computed to rounding: κ ≈ 1e16, beyond what
+/// refining the Woodbury solution can repair), one part in 1e9 from it, and one part in
+/// 1e6: the first falls back to the augmented system's LU for every mode, the last for
+/// none. All agree with the dense path (Householder QR) to 1e-6 relative: at the
+/// eigenvalue the two backward-stable paths differ by up to 4.9e-7 (the data sensitivity,
+/// whose conditioning there is ~1e9 times that of a solve; the Hessian 2e-11), measured.
+#[test]
+fn sparse_phi_substeps_at_an_eigenvalue_of_the_model() {
+    use boltwatch::core::modal::{EigenSolver, dense::DenseEigen};
+    let model = load_model("lab-frame");
+    let truth = LAB_TRUTH;
+    let data = simulated_data(&model, &truth, 9, 0.01, 0.05, true, 5);
+    let theta: Vec<f64> = truth.iter().map(|t| t * 1.1).collect();
+    let pairs = DenseEigen::new(&model)
+        .unwrap()
+        .solve(&model, &theta, 9)
+        .unwrap();
+    let rel = |a: &Mat<f64>, b: &Mat<f64>| (a - b).norm_l2() / b.norm_l2();
+    for (offset, fallbacks) in [(0.0, Some(9)), (1e-9, None), (1e-6, Some(0))] {
+        let tol = 1e-6;
+        let settings = BayesSettings {
+            sigma_c: 10.0,
+            prior_mean: vec![1.0; 17],
+            prior_std: vec![1000.0; 17],
+        };
+        let dense = BayesProblem::new(&model, &data, &settings).unwrap();
+        let mut sparse = BayesProblem::new(&model, &data, &settings).unwrap();
+        sparse.force_sparse();
+        let lambda: Vec<f64> = pairs.lambda.iter().map(|l| l * (1.0 + offset)).collect();
+        let d = dense.reduced(&lambda, &theta).unwrap();
+        let s = sparse.reduced(&lambda, &theta).unwrap();
+        let errs = [
+            rel(&s.hessian, &d.hessian),
+            rel(&s.data_sensitivity, &d.data_sensitivity),
+            rel(&s.phi, &d.phi),
+        ];
+        println!(
+            "λ = λ_model·(1 + {offset:e}): Hessian {:.1e}, data sensitivity {:.1e}, φ {:.1e}, {} fallbacks",
+            errs[0],
+            errs[1],
+            errs[2],
+            sparse.augmented_fallbacks()
+        );
+        for e in errs {
+            assert!(e < tol, "offset {offset}: differs by {e:e}");
+        }
+        assert!(((s.value - d.value) / d.value).abs() < tol);
+        if let Some(f) = fallbacks {
+            assert_eq!(sparse.augmented_fallbacks(), f, "offset {offset}");
         }
     }
 }

@@ -22,8 +22,11 @@
 //! is a Householder QR of `C_m = [σ_c⁻¹ A_m; W^{1/2} L_o]`, and the Hessian of `F` is
 //! assembled from `Qᵀ J_y` and `R⁻ᵀ E` so that the large terms of the Schur complement
 //! cancel analytically, not in floating point (see [`BayesProblem::reduced`]). Large models
-//! use sparse φ substeps: the same least-squares problems through their augmented systems,
-//! factored by a sparse LU ([`augmented`]), which deliver the cancelled quantities directly.
+//! use sparse φ substeps: the same least-squares problems through the sparse `LDLᵀ` of the
+//! shifted stiffness `K(θ) − λ_m M` and the Woodbury identity for the rank-`n_o` data term,
+//! refined against the augmented system's exact residual ([`shifted`]); where that matrix
+//! is singular to working precision, the augmented system factored by a sparse LU
+//! ([`augmented`]) instead.
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::householder;
@@ -35,6 +38,7 @@ mod augmented;
 mod covariance;
 mod newton;
 mod reduced;
+mod shifted;
 mod sweep;
 mod trust;
 mod workflow;
@@ -59,6 +63,8 @@ use crate::core::modal::SPARSE_FROM_DOF;
 use crate::core::model::Model;
 use crate::core::model::sparse::{Csc, spmv_add};
 use augmented::{AugmentedFactor, AugmentedSymbolic};
+use shifted::ShiftedFactor;
+pub use shifted::{REFINE_ACCEPT, REFINE_MAX_STEPS, REFINE_TOL};
 
 /// Failures of the Bayesian solver.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -136,8 +142,10 @@ pub struct BayesProblem {
     /// Dense `M`, for forming `A_m` in the φ substep's QR; `None` for a large model, whose
     /// φ substeps are sparse.
     m_dense: Option<Mat<f64>>,
-    /// Symbolic analyses of the sparse φ substeps (large models).
+    /// Symbolic analyses of the augmented systems, the fallback of the sparse φ substeps.
     augmented: AugmentedSymbolic,
+    /// Sparse φ substeps that fell back to the augmented system's LU.
+    fallbacks: std::sync::atomic::AtomicUsize,
     modes: Vec<BayesMode>,
     inv_s2: f64,
     prior_mean: Vec<f64>,
@@ -251,6 +259,7 @@ impl BayesProblem {
             p,
             m_dense: (n < SPARSE_FROM_DOF).then(|| model.mass_dense()),
             augmented: AugmentedSymbolic::new(data.modes.len()),
+            fallbacks: 0.into(),
             progress: std::sync::Mutex::new(None),
             model: model.clone(),
             modes,
@@ -278,6 +287,12 @@ impl BayesProblem {
         {
             f(self.sigma_c(), iteration, value, theta);
         }
+    }
+
+    /// Sparse φ substeps solved by the augmented system's LU since this problem was set up,
+    /// because the shifted stiffness was singular to working precision (see [`shifted`]).
+    pub fn augmented_fallbacks(&self) -> usize {
+        self.fallbacks.load(std::sync::atomic::Ordering::Relaxed)
     }
 
     /// Whether the φ substeps are sparse.

@@ -1,6 +1,6 @@
 //! The φ elimination (substep (21)) and the reduced objective `F(λ, θ)`: for fixed
 //! `(λ, θ)` each `φ_m` solves a linear least-squares problem (dense Householder QR, or the
-//! sparse augmented system for large models), and `F`'s gradient and Hessian are the
+//! shifted stiffness's sparse factorization for large models), and `F`'s gradient and Hessian are the
 //! Schur complement of (16) (module docs of [`super`]).
 
 use super::*;
@@ -41,22 +41,40 @@ impl PhiFactor {
 /// `K(θ)` for the φ substeps of one θ.
 pub(super) enum ThetaMatrices {
     Dense(Mat<f64>),
-    /// Values on the model's union pattern.
-    Sparse(Vec<f64>),
+    /// Values on the model's union pattern, and θ (each mode's shifted matrix is formed
+    /// on the reordered pattern for its factorization).
+    Sparse {
+        values: Vec<f64>,
+        theta: Vec<f64>,
+    },
 }
 
 /// The factorization of one mode's φ substep.
 pub(super) enum ModeFactor {
     Dense(PhiFactor),
-    Sparse(Box<AugmentedFactor>),
+    /// The shifted stiffness and the Woodbury solution ([`shifted`]).
+    Shifted(Box<ShiftedFactor>),
+    /// The augmented system's LU ([`augmented`]): the fallback of [`ModeFactor::Shifted`].
+    Augmented(Box<AugmentedFactor>),
 }
 
-impl ModeFactor {
+impl BayesProblem {
     /// The per-mode block of the reduced Hessian (before the factor 2) and
     /// `Z = N⁻¹(CᵀJ_y + E)`, from `J_y` (`(n + n_o) × (1 + p)`) and `E` (`n × (1 + p)`); see
-    /// [`BayesProblem::reduced`].
-    pub(super) fn schur_block(&self, mut jy: Mat<f64>, e: Mat<f64>) -> (Mat<f64>, Mat<f64>) {
-        match self {
+    /// [`BayesProblem::reduced`]. A shifted factorization whose refinement does not converge
+    /// is replaced by the augmented LU (`kt`, `m`, `lambda` rebuild it).
+    pub(super) fn schur_block(
+        &self,
+        kt: &ThetaMatrices,
+        m: usize,
+        lambda: f64,
+        fact: &ModeFactor,
+        mut jy: Mat<f64>,
+        e: Mat<f64>,
+    ) -> Result<(Mat<f64>, Mat<f64>), BayesError> {
+        // Sparse: s = P⊥J_y − C N⁻¹E, u = N⁻¹(CᵀJ_y + E), and J_yᵀs − Eᵀu is the block.
+        let minus_e = &e * faer::Scale(-1.0);
+        let (s, u) = match fact {
             ModeFactor::Dense(fact) => {
                 let n = e.nrows();
                 fact.apply_qt(jy.as_mut());
@@ -72,21 +90,47 @@ impl ModeFactor {
                     - y.transpose() * &y;
                 let mut z = x1 + &y;
                 fact.r().solve_upper_triangular_in_place(z.as_mut()); // R⁻¹(X₁ + Y)
-                (block, z)
+                return Ok((block, z));
             }
-            ModeFactor::Sparse(fact) => {
-                // s = P⊥J_y − C N⁻¹E, u = N⁻¹(CᵀJ_y + E): J_yᵀs − Eᵀu is the block.
-                let minus_e = &e * faer::Scale(-1.0);
-                let (s, u) = fact.solve(jy.as_ref(), Some(minus_e.as_ref()));
-                let b = jy.transpose() * &s - e.transpose() * &u;
-                let block = (&b + b.transpose()) * faer::Scale(0.5);
-                (block, u)
+            ModeFactor::Shifted(fact) => {
+                match fact.solve(&self.model, jy.as_ref(), Some(minus_e.as_ref())) {
+                    Some(su) => su,
+                    None => self
+                        .augmented_factor(kt, m, lambda)?
+                        .solve(jy.as_ref(), Some(minus_e.as_ref())),
+                }
             }
-        }
+            ModeFactor::Augmented(fact) => fact.solve(jy.as_ref(), Some(minus_e.as_ref())),
+        };
+        let b = jy.transpose() * &s - e.transpose() * &u;
+        Ok(((&b + b.transpose()) * faer::Scale(0.5), u))
     }
-}
 
-impl BayesProblem {
+    /// The augmented system's LU for mode `m` at `(λ_m, θ)`: the fallback of the shifted
+    /// factorization, counted in [`BayesProblem::augmented_fallbacks`].
+    fn augmented_factor(
+        &self,
+        kt: &ThetaMatrices,
+        m: usize,
+        lambda: f64,
+    ) -> Result<AugmentedFactor, BayesError> {
+        let ThetaMatrices::Sparse { values, .. } = kt else {
+            unreachable!("the augmented system serves the sparse path only")
+        };
+        self.fallbacks
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let mut a = values.clone();
+        self.model.subtract_mass_values(lambda, &mut a);
+        AugmentedFactor::new(
+            &self.model,
+            &self.augmented,
+            m,
+            &a,
+            self.inv_s2.sqrt(),
+            &self.modes[m].rows,
+        )
+    }
+
     /// Dense `K(θ)`.
     pub(super) fn stiffness(&self, theta: &[f64]) -> Mat<f64> {
         let mut k = Mat::zeros(self.n, self.n);
@@ -101,7 +145,10 @@ impl BayesProblem {
         } else {
             let mut v = vec![0.0; self.model.union_pattern().pattern.val().len()];
             self.model.shifted_stiffness_values(theta, 0.0, &mut v);
-            ThetaMatrices::Sparse(v)
+            ThetaMatrices::Sparse {
+                values: v,
+                theta: theta.to_vec(),
+            }
         }
     }
 
@@ -145,23 +192,25 @@ impl BayesProblem {
                 r.solve_upper_triangular_in_place(x.as_mut());
                 Ok((x.col(0).iter().copied().collect(), ModeFactor::Dense(fact)))
             }
-            ThetaMatrices::Sparse(kv) => {
-                let mut a = kv.clone();
+            ThetaMatrices::Sparse { values, theta } => {
+                let mut a = values.clone();
                 self.model.subtract_mass_values(lambda, &mut a);
-                let fact = AugmentedFactor::new(
-                    &self.model,
-                    &self.augmented,
-                    m,
-                    &a,
-                    sigma_inv,
-                    &mode.rows,
-                )?;
+                if let Some(fact) =
+                    ShiftedFactor::new(&self.model, theta, lambda, a, 1.0 / sigma_inv, &mode.rows)
+                    && let Some((_, u)) = fact.solve(&self.model, d.as_ref(), None)
+                {
+                    let phi: Vec<f64> = u.col(0).iter().copied().collect();
+                    if phi.iter().all(|v| v.is_finite()) {
+                        return Ok((phi, ModeFactor::Shifted(Box::new(fact))));
+                    }
+                }
+                let fact = self.augmented_factor(k, m, lambda)?;
                 let (_, u) = fact.solve(d.as_ref(), None);
                 let phi: Vec<f64> = u.col(0).iter().copied().collect();
                 if !phi.iter().all(|v| v.is_finite()) {
                     return Err(BayesError::PhiSystemSingular { mode: m + 1 });
                 }
-                Ok((phi, ModeFactor::Sparse(Box::new(fact))))
+                Ok((phi, ModeFactor::Augmented(Box::new(fact))))
             }
         }
     }
@@ -254,9 +303,10 @@ impl BayesProblem {
     }
 
     /// `f(m)` for every mode, in mode order. Large models run two modes at a time: a sparse
-    /// φ substep is only partly parallel inside (on the four-bay frame two at once took an
-    /// evaluation from 15.0 to 7.2 s), and not more than two, as each factorization there
-    /// holds ~1.9 GB (peak RSS of an update 2.6 GB one at a time, 4.5 GB two at a time).
+    /// φ substep is sequential inside (its factorization and solves). Each holds the
+    /// `LDLᵀ` of one shifted stiffness, `B` and a few `n × (1 + p)` blocks: on the four-bay
+    /// frame a Bayesian update peaks at 0.86–0.89 GB, the model and the mode-matching
+    /// comparison included (4.45 GB with the augmented LU, ~1.9 GB per mode).
     pub(super) fn per_mode<T: Send>(
         &self,
         f: impl Fn(usize) -> Result<T, BayesError> + Sync,
@@ -311,7 +361,7 @@ impl BayesProblem {
                 e[(i, 1 + l)] = s2 * klaphi[i];
             }
         }
-        let (block, z) = fact.schur_block(jy, e);
+        let (block, z) = self.schur_block(kt, m, lambda, &fact, jy, e)?;
         Ok(ModePart {
             phi: ph,
             value,
