@@ -19,7 +19,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use crate::contract::modal_set::{MeasuredMode, ModalSet};
-use crate::core::modal::{DenseEigen, ModalError};
+use crate::core::modal::{ModalError, solver_for};
 use crate::core::model::spec::{MassSpec, ModelSpec};
 use crate::core::model::{Model, ModelError, ParameterKind};
 use crate::core::simulate::{Noise, simulate_modes};
@@ -234,7 +234,9 @@ impl Scenario {
             ));
         }
         let model = Model::from_spec(spec)?;
-        let mut solver = DenseEigen::new(&model)?;
+        // The solver for the model's size: a large model's dense eigenproblem would not fit
+        // in memory (the four-bay solid frame's K and M alone are 16 GB dense).
+        let mut solver = solver_for(&model)?;
         let (mut mass_model, mass_day) = match &self.event {
             Event::Mass { at, mass, day } => {
                 let mut with = spec.clone();
@@ -244,7 +246,7 @@ impl Scenario {
                     inertia: 0.0,
                 });
                 let m = Model::from_spec(&with)?;
-                let s = DenseEigen::new(&m)?;
+                let s = solver_for(&m)?;
                 (Some((m, s)), *day)
             }
             _ => (None, f64::INFINITY),
@@ -257,11 +259,11 @@ impl Scenario {
             let theta = self.theta_at(&model, t);
             let modes = match (&mut mass_model, t >= mass_day) {
                 (Some((m, s)), true) => {
-                    simulate_modes(m, s, &theta, self.modes, self.noise, &mut rng)?
+                    simulate_modes(m, s.as_mut(), &theta, self.modes, self.noise, &mut rng)?
                 }
                 _ => simulate_modes(
                     &model,
-                    &mut solver,
+                    solver.as_mut(),
                     &theta,
                     self.modes,
                     self.noise,

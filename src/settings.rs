@@ -66,6 +66,9 @@ pub struct DaemonSettings {
     pub max_payload_bytes: usize,
     /// Bytes of the payloads waiting in one structure's queue, at most (MiB).
     pub queue_mib: usize,
+    /// The process's memory budget (MiB), the deployment's `MemoryMax`: a Bayesian
+    /// cross-check that would not fit is skipped with the reason.
+    pub memory_mib: u64,
 }
 
 /// `[metrics]`.
@@ -204,6 +207,12 @@ impl Settings {
                 "configuration key daemon.queue_mib: {} MiB cannot hold one payload of daemon.max_payload_bytes = {}",
                 self.daemon.queue_mib,
                 self.daemon.max_payload_bytes
+            );
+        }
+        if self.daemon.memory_mib < 64 {
+            bail!(
+                "configuration key daemon.memory_mib: {} MiB is too small for the daemon (at least 64)",
+                self.daemon.memory_mib
             );
         }
         for (key, v) in [

@@ -87,4 +87,9 @@ pub struct CrosscheckCounts {
     pub published: u64,
     /// Not started because the previous one was still running.
     pub skipped: u64,
+    /// Why the structure's cross-checks do not fit the memory budget (`daemon.memory_mib`),
+    /// found at start; absent when they fit. Each cross-check is checked again when due, and
+    /// one that does not fit is published with `ok: false` and the reason.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub unavailable: Option<String>,
 }

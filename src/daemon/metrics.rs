@@ -75,6 +75,8 @@ pub struct Status {
     pub crosschecks: u64,
     /// Cross-checks not started because the previous one was still running.
     pub crosschecks_skipped: u64,
+    /// Why this structure's cross-checks do not fit the memory budget, found at start.
+    pub crosscheck_unavailable: Option<String>,
     pub publish_errors: u64,
     pub log_file: Option<String>,
     pub last_checkpoint: Option<String>,
@@ -210,6 +212,7 @@ impl Shared {
             crosschecks: CrosscheckCounts {
                 published: st.crosschecks,
                 skipped: st.crosschecks_skipped,
+                unavailable: st.crosscheck_unavailable,
             },
             publish_errors: st.publish_errors,
             log_file: st.log_file,

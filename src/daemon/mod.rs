@@ -36,6 +36,7 @@ use zenoh_ext::{AdvancedSubscriberBuilderExt, HistoryConfig, RecoveryConfig};
 
 use crate::contract::{Checkpoint, to_wire};
 use crate::io::checkpoint;
+use crate::io::driver::{CrosscheckLane, MemoryBudget};
 use crate::io::mcap::topic;
 use crate::io::model::load_structure;
 use crate::io::zenoh::{session_config, zerr};
@@ -128,7 +129,10 @@ pub async fn run(settings: Settings) -> Result<()> {
             },
             ckpt,
             Duration::from_secs_f64(d.checkpoint_every_s),
-            settings.crosscheck.clone(),
+            CrosscheckLane {
+                cfg: settings.crosscheck.clone(),
+                budget: Some(MemoryBudget::from_mib(d.memory_mib)),
+            },
             settings.identify.clone(),
         )?;
         let (tx, rx) = mpsc::sync_channel::<Input>(d.queue);

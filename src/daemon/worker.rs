@@ -32,10 +32,11 @@ use crate::contract::rejected::REJECTED_PAYLOAD_LIMIT;
 use crate::contract::wire::digest_parts;
 use crate::contract::{Checkpoint, Output, Rejected, Schema, WalPosition, rfc3339};
 use crate::io::checkpoint;
-use crate::io::driver::{JobKind, OffPath, Pace, Sink, StructureModel, dispatch, emit};
+use crate::io::driver::{
+    CrosscheckLane, JobKind, OffPath, Pace, Sink, StructureModel, dispatch, emit,
+};
 use crate::io::mcap::{from_ns, to_ns, topic};
 use crate::pipeline::accel::{AccelFront, FrontEvent, IdentifySettings};
-use crate::pipeline::crosscheck::CrosscheckConfig;
 use crate::pipeline::{Action, Tracker, TrackerState};
 
 /// What the subscriber hands the worker.
@@ -139,15 +140,22 @@ impl Worker {
         out: LiveSink,
         checkpoint_path: PathBuf,
         checkpoint_every: Duration,
-        crosscheck_cfg: CrosscheckConfig,
+        crosscheck: CrosscheckLane,
         identify: IdentifySettings,
     ) -> Result<Self> {
         let name = tracker.model().name.clone();
         let front = AccelFront::for_model(model.clone(), identify);
+        // A structure whose cross-check would not fit the memory budget is reported now;
+        // each cross-check is checked again when it is due (the process grows meanwhile).
+        if let Some(reason) = crosscheck.budget.and_then(|b| b.refuses_at_start(&model.1)) {
+            tracing::warn!(structure = name, "{reason}");
+            out.shared
+                .with_status(|st| st.crosscheck_unavailable = Some(reason));
+        }
         let lane = OffPath::start(
             &format!("crosscheck-{name}"),
             HashMap::from([(name, model)]),
-            crosscheck_cfg,
+            crosscheck,
             tracker.config().shape_weight,
         )?;
         let w = Self {

@@ -18,7 +18,8 @@ use anyhow::{Result, anyhow};
 use crate::contract::Output;
 use crate::core::model::Model;
 use crate::core::model::spec::ModelSpec;
-use crate::pipeline::crosscheck::{CrosscheckConfig, crosscheck};
+use crate::core::updating::bayesian::map_memory_bytes;
+use crate::pipeline::crosscheck::{CrosscheckConfig, crosscheck, skipped};
 use crate::pipeline::verdict::diagnosis_alert;
 use crate::pipeline::{Action, CrosscheckRequest, DiagnoseRequest};
 
@@ -133,6 +134,75 @@ pub const DIAGNOSES_QUEUED: usize = 4;
 /// model imported from matrices) and assembled.
 pub type StructureModel = Arc<(Option<ModelSpec>, Model)>;
 
+/// The memory the cross-checks may use (`daemon.memory_mib`, matching the deployment's
+/// `MemoryMax`): a cross-check runs only if the process's resident memory now plus the
+/// MAP's estimated working set ([`map_memory_bytes`]) stays under it. One that would not
+/// is skipped and published with the reason, never started to be OOM-killed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct MemoryBudget {
+    pub bytes: u64,
+}
+
+/// What the off-path cross-checks run with: their settings and, for the daemon, the
+/// memory budget.
+#[derive(Debug, Clone)]
+pub struct CrosscheckLane {
+    pub cfg: CrosscheckConfig,
+    pub budget: Option<MemoryBudget>,
+}
+
+/// Modes a MAP works on at once ([`map_memory_bytes`] counts that many in flight): the
+/// mode count the start-up check assumes, before any set has come.
+const START_CHECK_MODES: usize = 2;
+
+impl MemoryBudget {
+    /// From `daemon.memory_mib`.
+    pub fn from_mib(mib: u64) -> Self {
+        Self {
+            bytes: mib.saturating_mul(1 << 20),
+        }
+    }
+
+    /// Why a cross-check of `model` on a set of `n_modes` modes and `n_channels` channels
+    /// would not fit now, or `None` when it fits.
+    pub fn refuses(&self, model: &Model, n_modes: usize, n_channels: usize) -> Option<String> {
+        let mib = |b: u64| b.div_ceil(1 << 20);
+        let Some(need) = map_memory_bytes(model, n_modes, n_channels) else {
+            return Some(format!(
+                "cross-check of {} skipped: its memory cannot be estimated (the model's \
+                 pattern cannot be analysed)",
+                model.name
+            ));
+        };
+        let held = resident_bytes().unwrap_or(0);
+        (held.saturating_add(need) > self.bytes).then(|| {
+            format!(
+                "cross-check of {} skipped: the Bayesian MAP needs about {} MiB beside the {} \
+                 MiB the process holds, over daemon.memory_mib = {}",
+                model.name,
+                mib(need),
+                mib(held),
+                mib(self.bytes)
+            )
+        })
+    }
+
+    /// The start-up check of a structure ([`START_CHECK_MODES`] modes on every channel of
+    /// the model): why its cross-checks will not fit, if they will not.
+    pub fn refuses_at_start(&self, model: &Model) -> Option<String> {
+        self.refuses(model, START_CHECK_MODES, model.channels().len())
+    }
+}
+
+/// The process's resident memory (Linux `/proc/self/statm`), if it can be read.
+pub fn resident_bytes() -> Option<u64> {
+    let statm = std::fs::read_to_string("/proc/self/statm").ok()?;
+    let pages: u64 = statm.split_whitespace().nth(1)?.parse().ok()?;
+    // SAFETY: sysconf has no preconditions; it returns -1 for an unknown name.
+    let page = unsafe { libc::sysconf(libc::_SC_PAGESIZE) };
+    (page > 0).then(|| pages * page as u64)
+}
+
 /// The thread that runs cross-checks and diagnoses, in submission order, for the
 /// structures it is given. At most one cross-check is pending (one requested while another
 /// job is pending is skipped) and at most [`DIAGNOSES_QUEUED`] diagnoses wait behind the
@@ -145,13 +215,15 @@ pub struct OffPath {
 }
 
 impl OffPath {
-    /// Starts the thread (`name`) for `models`, keyed by structure name.
+    /// Starts the thread (`name`) for `models`, keyed by structure name; cross-checks
+    /// keep within the lane's budget when it has one.
     pub fn start(
         name: &str,
         models: HashMap<String, StructureModel>,
-        cfg: CrosscheckConfig,
+        lane: CrosscheckLane,
         shape_weight: f64,
     ) -> Result<Self> {
+        let CrosscheckLane { cfg, budget } = lane;
         let (jtx, jrx) = mpsc::sync_channel::<(String, Job)>(DIAGNOSES_QUEUED + 1);
         let (rtx, rrx) = mpsc::channel();
         let thread = std::thread::Builder::new()
@@ -161,12 +233,17 @@ impl OffPath {
                 for (s, job) in jrx {
                     let (spec, model) = &*models[&s];
                     let out = match job {
-                        Job::Crosscheck(req) => Output::Crosscheck(Box::new(crosscheck(
-                            model,
-                            &cfg,
-                            shape_weight,
-                            &req,
-                        ))),
+                        Job::Crosscheck(req) => Output::Crosscheck(Box::new(
+                            match budget.and_then(|b| {
+                                b.refuses(model, req.set.modes.len(), req.set.channels.len())
+                            }) {
+                                Some(reason) => {
+                                    tracing::warn!(structure = s, "{reason}");
+                                    skipped(model, &cfg, &req, reason)
+                                }
+                                None => crosscheck(model, &cfg, shape_weight, &req),
+                            },
+                        )),
                         Job::Diagnose(req) => Output::Alert(Box::new(diagnosis_alert(
                             spec.as_ref(),
                             model,
@@ -272,5 +349,28 @@ impl Drop for OffPath {
             }
             let _ = t.join();
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The budget refuses a cross-check that would not fit, naming the key and both
+    /// figures, and lets one through that fits (the lab frame's MAP needs a few MiB).
+    #[test]
+    fn the_memory_budget_refuses_what_does_not_fit() {
+        let model = crate::core::model::lab_frame();
+        let need = map_memory_bytes(&model, 9, 42).unwrap();
+        assert!(need > 0 && need < 64 << 20, "{need} bytes");
+        let reason = MemoryBudget { bytes: need }
+            .refuses(&model, 9, 42)
+            .expect("the process holds memory besides the MAP");
+        assert!(
+            reason.contains("daemon.memory_mib") && reason.contains("lab-frame"),
+            "{reason}"
+        );
+        assert_eq!(MemoryBudget::from_mib(1 << 30).refuses(&model, 9, 42), None);
+        assert!(MemoryBudget::from_mib(1).refuses_at_start(&model).is_some());
     }
 }

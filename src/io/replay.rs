@@ -25,7 +25,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
 use super::checkpoint;
-use super::driver::{OffPath, Pace, Sink, dispatch};
+use super::driver::{CrosscheckLane, OffPath, Pace, Sink, dispatch};
 use super::mcap::{
     ChannelSpec, McapWriter, RecordedMessage, for_each_message, from_ns, read_tolerant, to_ns,
     topic,
@@ -588,7 +588,10 @@ pub fn replay(
     let mut lane = OffPath::start(
         "replay-offpath",
         models,
-        settings.crosscheck.clone(),
+        CrosscheckLane {
+            cfg: settings.crosscheck.clone(),
+            budget: None,
+        },
         tracker_cfg.shape_weight,
     )?;
 

@@ -70,6 +70,47 @@ impl CrosscheckConfig {
     }
 }
 
+/// σ_c of the cross-check on `model`: the configuration's, else the model file's, else
+/// [`DEFAULT_SIGMA_C`].
+fn sigma_c_of(model: &Model, cfg: &CrosscheckConfig) -> f64 {
+    cfg.sigma_c
+        .or(model.bayesian.sigma_c)
+        .unwrap_or(DEFAULT_SIGMA_C)
+}
+
+/// A cross-check message for `req` with no MAP in it yet (`ok: false`).
+fn unanswered(model: &Model, sigma_c: f64, req: &CrosscheckRequest) -> Crosscheck {
+    Crosscheck {
+        schema: Schema::new(),
+        id: crate::contract::output_id(&model.name, req.set.time, "crosscheck", 0),
+        structure: model.name.clone(),
+        time: req.set.time,
+        sigma_c,
+        mode_matching: FitIterations {
+            iterations: req.iterations,
+        },
+        ok: false,
+        error: None,
+        bayesian: None,
+        parameters: Vec::new(),
+        max_z: None,
+        disagree: Vec::new(),
+    }
+}
+
+/// The cross-check of `req` not run, with the reason (e.g. the memory budget), published
+/// so that a subscriber sees why none came.
+pub fn skipped(
+    model: &Model,
+    cfg: &CrosscheckConfig,
+    req: &CrosscheckRequest,
+    reason: String,
+) -> Crosscheck {
+    let mut c = unanswered(model, sigma_c_of(model, cfg), req);
+    c.error = Some(reason);
+    c
+}
+
 /// Runs the cross-check. A failed MAP solve is reported in the message (`ok: false`,
 /// `error`), never dropped.
 pub fn crosscheck(
@@ -78,10 +119,7 @@ pub fn crosscheck(
     shape_weight: f64,
     req: &CrosscheckRequest,
 ) -> Crosscheck {
-    let sigma_c = cfg
-        .sigma_c
-        .or(model.bayesian.sigma_c)
-        .unwrap_or(DEFAULT_SIGMA_C);
+    let sigma_c = sigma_c_of(model, cfg);
     let p = model.n_params();
     let prior_std = model.bayesian.prior_std.unwrap_or(DEFAULT_PRIOR_STD);
     let data = measured_data(&req.set, model, shape_weight);
@@ -99,22 +137,7 @@ pub fn crosscheck(
         let free = prob.threshold_free_covariance(&res.state)?;
         Ok((res, free.sampling_theta_std(), free.posterior_theta_std()))
     });
-    let mut c = Crosscheck {
-        schema: Schema::new(),
-        id: crate::contract::output_id(&model.name, req.set.time, "crosscheck", 0),
-        structure: model.name.clone(),
-        time: req.set.time,
-        sigma_c,
-        mode_matching: FitIterations {
-            iterations: req.iterations,
-        },
-        ok: false,
-        error: None,
-        bayesian: None,
-        parameters: Vec::new(),
-        max_z: None,
-        disagree: Vec::new(),
-    };
+    let mut c = unanswered(model, sigma_c, req);
     match outcome {
         Ok((res, std_b, post_b)) => {
             for (l, par) in model.parameters().iter().enumerate() {

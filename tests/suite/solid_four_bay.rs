@@ -272,3 +272,120 @@ fn bayesian_newton_converges_on_a_coarse_four_bay_frame() {
         }
     }
 }
+
+/// Peak RSS (bytes) of a command run to completion: its `VmHWM`, read every 10 ms while it
+/// runs (the high-water mark of its own address space; `wait4`'s `ru_maxrss` would include
+/// this test process's RSS at the fork), its output to `log`.
+fn peak_rss(cmd: &mut std::process::Command, log: &std::path::Path) -> u64 {
+    use std::process::Stdio;
+    let out = std::fs::File::create(log).unwrap();
+    let mut child = cmd
+        .stdout(Stdio::null())
+        .stderr(Stdio::from(out))
+        .spawn()
+        .unwrap();
+    let status_file = format!("/proc/{}/status", child.id());
+    let mut peak_kib = 0u64;
+    let status = loop {
+        if let Ok(s) = std::fs::read_to_string(&status_file)
+            && let Some(kib) = s
+                .lines()
+                .find_map(|l| l.strip_prefix("VmHWM:"))
+                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+        {
+            peak_kib = peak_kib.max(kib);
+        }
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    };
+    assert!(
+        status.success(),
+        "{cmd:?} failed: {}",
+        std::fs::read_to_string(log).unwrap_or_default()
+    );
+    peak_kib * 1024
+}
+
+/// Issue 27: the Bayesian MAP of the four-bay frame on the issue's data (seed 1, σ_c =
+/// 1e3) peaks below 1 GiB, whole process; and its memory estimate
+/// (`bayesian::map_memory_bytes`, what the daemon's budget check uses) covers what the
+/// MAP adds to a process that holds the model and mode matching's solvers: the peak of
+/// `update --method bayesian` (the MAP, its covariance and the mode-matching comparison)
+/// is at most that of `update` (mode matching) plus the estimate, and the estimate is not
+/// above the whole peak (it is an estimate, not a blanket).
+#[test]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow tier: cargo test --features slow-tests"
+)]
+fn the_bayesian_map_stays_within_its_memory_estimate_on_the_four_bay_frame() {
+    use std::process::Command;
+    let dir = std::env::temp_dir().join(format!("bw-solid-memory-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let model = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/config/models/four-bay-solid.toml"
+    );
+    let bin = env!("CARGO_BIN_EXE_boltwatch");
+    let data = dir.join("d.json");
+    let data_s = data.to_str().unwrap();
+    let out = Command::new(bin)
+        .args([
+            "simulate",
+            "--model",
+            model,
+            "--theta",
+            "0.36,0.36,0.36,0.5",
+        ])
+        .args([
+            "--modes",
+            "6",
+            "--freq-cov",
+            "0.005",
+            "--seed",
+            "1",
+            "-o",
+            data_s,
+        ])
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let mm = peak_rss(
+        Command::new(bin)
+            .args(["update", "--model", model, "--data", data_s, "-o"])
+            .arg(dir.join("mm.json")),
+        &dir.join("mm.log"),
+    );
+    let map = peak_rss(
+        Command::new(bin)
+            .args([
+                "update",
+                "--method",
+                "bayesian",
+                "--sigma-c",
+                "1e3",
+                "--no-tsvd",
+            ])
+            .args(["--model", model, "--data", data_s, "-o"])
+            .arg(dir.join("map.json")),
+        &dir.join("map.log"),
+    );
+    let estimate =
+        boltwatch::core::updating::bayesian::map_memory_bytes(&four_bay(), 6, 66).unwrap();
+    let mib = |b: u64| b as f64 / (1 << 20) as f64;
+    println!(
+        "four-bay peak RSS: mode matching {:.0} MiB, Bayesian MAP (with covariance and comparison) {:.0} MiB; MAP estimate {:.0} MiB",
+        mib(mm),
+        mib(map),
+        mib(estimate)
+    );
+    assert!(map < 1 << 30, "the MAP peaked at {:.0} MiB", mib(map));
+    assert!(
+        map <= mm + estimate,
+        "the MAP added {:.0} MiB, over its estimate",
+        mib(map.saturating_sub(mm))
+    );
+    assert!(estimate <= map, "the estimate is above the whole peak");
+}

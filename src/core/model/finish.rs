@@ -2,6 +2,7 @@
 //! [`Model`] from its matrices.
 
 use rayon::prelude::*;
+use std::sync::Arc;
 
 use super::sparse::{Csc, UnionPattern, csc_from_lower, diagonal};
 use super::spec::BayesSpec;
@@ -100,13 +101,13 @@ pub(super) fn finish(
     Ok(Model {
         name: name.to_string(),
         dof_labels: labels,
-        k0,
-        k_params,
-        m,
+        k0: Arc::new(k0),
+        k_params: Arc::new(k_params),
+        m: Arc::new(m),
         parameters,
         connections,
         channels,
-        union,
+        union: Arc::new(union),
         massless,
         locations: Vec::new(),
         reordered: Default::default(),

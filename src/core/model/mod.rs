@@ -119,14 +119,16 @@ pub(crate) fn lab_frame() -> Model {
 pub struct Model {
     pub name: String,
     dof_labels: Vec<String>,
-    k0: Csc,
-    k_params: Vec<Csc>,
-    m: Csc,
+    // The matrices are shared between copies of a model (a tracker's, a cross-check's, the
+    // daemon's): on the four-bay solid frame each copy was ~0.3 GB.
+    k0: std::sync::Arc<Csc>,
+    k_params: std::sync::Arc<Vec<Csc>>,
+    m: std::sync::Arc<Csc>,
     parameters: Vec<Parameter>,
     connections: Vec<Connection>,
     channels: Vec<Channel>,
     /// Union of the patterns of K0, every K_l and M (positions 0, 1..=p, p+1 in `maps`).
-    union: UnionPattern,
+    union: std::sync::Arc<UnionPattern>,
     /// DOFs without mass, ascending (see `finish::massless_dofs`).
     massless: Vec<usize>,
     /// Named places (imported models).
@@ -285,6 +287,23 @@ impl Model {
         Ok(self.reordered.get_or_init(|| r))
     }
 
+    /// Bytes held by the matrices (values and indices of `K0`, every `K_l`, `M`, and their
+    /// union pattern with its maps); copies of a model share them, and the reordered
+    /// analysis.
+    pub fn matrix_bytes(&self) -> u64 {
+        let csc = |a: &Csc| (a.val().len() * 16 + (a.ncols() + 1) * 8) as u64;
+        csc(&self.k0)
+            + self.k_params.iter().map(csc).sum::<u64>()
+            + csc(&self.m)
+            + csc(&self.union.pattern)
+            + self
+                .union
+                .maps
+                .iter()
+                .map(|m| m.len() as u64 * 8)
+                .sum::<u64>()
+    }
+
     /// `K(θ) − σ M` on the value array of [`Model::reordered`]'s lower triangle, paper (1).
     pub fn shifted_stiffness_reordered(
         &self,
@@ -303,13 +322,13 @@ impl Model {
 
     /// `K(θ) − σ M` on the union pattern's value array, paper (1).
     pub fn shifted_stiffness_values(&self, theta: &[f64], sigma: f64, out: &mut [f64]) {
-        self.shifted_into(&self.union, theta, sigma, out);
+        self.shifted_into(&*self.union, theta, sigma, out);
     }
 
     /// `out −= σ M` on the union pattern's value array (after
     /// [`Model::shifted_stiffness_values`] with σ = 0).
     pub fn subtract_mass_values(&self, sigma: f64, out: &mut [f64]) {
-        self.subtract_mass_into(&self.union, sigma, out);
+        self.subtract_mass_into(&*self.union, sigma, out);
     }
 
     /// `K(θ) − σ M` on a value array laid out by `layout` (source matrices 0 = K0,

@@ -649,3 +649,94 @@ fn deployment_files_load() {
         zenoh::Config::from_json5(&text).unwrap_or_else(|e| panic!("{f}: {e}"));
     }
 }
+
+/// Issue 27: the daemon under the deployment's memory budget (`daemon.memory_mib = 1024`,
+/// the unit's `MemoryMax=1G`) tracks the four-bay solid frame (31,458 DOF) and runs its
+/// Bayesian cross-check on it: the structure is not reported as unable to cross-check, the
+/// cross-check is published with `ok: true`, and the daemon's peak RSS stays below 1 GiB
+/// (its MAP used to need 4.5 GB).
+#[test]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow tier: cargo test --features slow-tests"
+)]
+fn the_four_bay_frame_is_cross_checked_within_the_memory_budget() {
+    let d = tmp_dir("daemon-four-bay");
+    let rec = d.join("rec.mcap");
+    let out = bin()
+        .args([
+            "scenario",
+            "healthy",
+            "--model",
+            "config/models/four-bay-solid.toml",
+            "--sets",
+            "2",
+            "--days",
+            "1",
+            "-o",
+        ])
+        .arg(&rec)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let structures = "[[structures]]\nname = \"four-bay-solid\"\n\
+                      model = \"config/models/four-bay-solid.toml\"\n\n\
+                      [tracker]\ncrosscheck_every_sets = 1\ncrosscheck_every_s = 0.0\n";
+    let mut daemon = Daemon::start(&d, "memory_mib = 1024", structures);
+    let s = client(&daemon.endpoint);
+    let sub = s
+        .declare_subscriber(topic("four-bay-solid", "crosscheck"))
+        .with(zenoh::handlers::FifoChannel::new(100))
+        .wait()
+        .unwrap();
+    let st = wait_status_of(
+        &s,
+        "four-bay-solid",
+        Duration::from_secs(120),
+        "the daemon",
+        |_| true,
+    );
+    assert!(
+        st["crosschecks"].get("unavailable").is_none(),
+        "the cross-check was found not to fit: {st:#}"
+    );
+    run_ok(publish(&rec, &daemon.endpoint, &["--rate", "0"]));
+    let st = wait_status_of(
+        &s,
+        "four-bay-solid",
+        Duration::from_secs(900),
+        "two sets and a cross-check",
+        |v| {
+            v["sets"]["accepted"].as_u64().unwrap() >= 2
+                && v["crosschecks"]["published"].as_u64().unwrap() >= 1
+        },
+    );
+    let hwm_kib = vm_hwm_kib(daemon.pid());
+    let c: serde_json::Value = serde_json::from_slice(
+        &sub.recv_timeout(Duration::from_secs(60))
+            .unwrap()
+            .unwrap()
+            .payload()
+            .to_bytes(),
+    )
+    .unwrap();
+    println!(
+        "four-bay daemon: {} sets, {} cross-checks ({} skipped), peak RSS {} MiB; cross-check ok {}, {} Newton iterations, max z {}",
+        st["sets"]["accepted"],
+        st["crosschecks"]["published"],
+        st["crosschecks"]["skipped"],
+        hwm_kib / 1024,
+        c["ok"],
+        c["bayesian"]["iterations"],
+        c["max_z"]
+    );
+    assert_eq!(c["ok"], true, "{c:#}");
+    assert!(hwm_kib < 1024 * 1024, "peak RSS {hwm_kib} KiB");
+    drop(sub);
+    drop(s);
+    assert!(daemon.terminate().success());
+}

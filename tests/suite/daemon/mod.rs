@@ -262,10 +262,21 @@ pub fn wait_status(
     what: &str,
     done: impl Fn(&Value) -> bool,
 ) -> Value {
+    wait_status_of(s, "lab-frame", limit, what, done)
+}
+
+/// [`wait_status`] for `structure`.
+pub fn wait_status_of(
+    s: &zenoh::Session,
+    structure: &str,
+    limit: Duration,
+    what: &str,
+    done: impl Fn(&Value) -> bool,
+) -> Value {
     let deadline = Instant::now() + limit;
     let mut last = Value::Null;
     while Instant::now() < deadline {
-        if let Some(v) = status(s) {
+        if let Some(v) = status_of(s, structure) {
             if done(&v) {
                 return v;
             }
@@ -357,3 +368,12 @@ pub fn replayed_with(
 mod deploy;
 mod field;
 mod tracking;
+
+/// Peak resident set size of a process (KiB).
+pub fn vm_hwm_kib(pid: i32) -> u64 {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    s.lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+        .unwrap()
+}

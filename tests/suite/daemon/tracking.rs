@@ -415,15 +415,6 @@ fn a_burst_larger_than_the_queue_is_tracked_or_counted() {
     assert!(daemon.terminate().success());
 }
 
-/// Peak resident set size of a process (KiB).
-fn vm_hwm_kib(pid: i32) -> u64 {
-    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
-    s.lines()
-        .find_map(|l| l.strip_prefix("VmHWM:"))
-        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
-        .unwrap()
-}
-
 /// Raw data live: 3 bursts of 30 s of simulated accelerations (42 channels at 500 Hz, in
 /// one-second `boltwatch.accel.v1` blocks) published on `boltwatch/lab-frame/accel` are
 /// windowed and identified by the daemon, which publishes each window's modal set on

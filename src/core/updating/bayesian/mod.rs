@@ -36,6 +36,7 @@ use faer::{Col, Conj, Mat, MatMut, Par, Side};
 mod alternating;
 mod augmented;
 mod covariance;
+mod memory;
 mod newton;
 mod reduced;
 mod shifted;
@@ -44,13 +45,14 @@ mod trust;
 mod workflow;
 pub use alternating::ALTERNATING_TOL;
 pub use covariance::{LCurvePoint, ThresholdFree, Tsvd, l_curve_corner};
+pub use memory::map_memory_bytes;
 pub use newton::{
     COLD_START_ITERATIONS, CONTINUATION_CLIMBS, CONTINUATION_RATIO, CONTINUATION_STAGE_ITERATIONS,
     NEWTON_DECREMENT_TOL, NEWTON_RESOLUTION, NEWTON_STEP_TOL, STAGE_STEP_TOL, STALL_DAMPING,
     STALL_PROBE_ITERATIONS, TRUST_ACCEPT, TRUST_INITIAL_RADIUS, TRUST_MAX_RADIUS, TRUST_MIN_RADIUS,
 };
 pub use sweep::{
-    AlternatingRun, AutoSigma, SigmaTrial, SweepError, SweepPoint, SweepSettings,
+    AUTO_MISFIT_TOL, AlternatingRun, AutoSigma, SigmaTrial, SweepError, SweepPoint, SweepSettings,
     discrepancy_choice, log_grid, sweep_sigma,
 };
 pub use workflow::{
