@@ -52,8 +52,8 @@ pub use newton::{
     STALL_PROBE_ITERATIONS, TRUST_ACCEPT, TRUST_INITIAL_RADIUS, TRUST_MAX_RADIUS, TRUST_MIN_RADIUS,
 };
 pub use sweep::{
-    AUTO_MISFIT_TOL, AlternatingRun, AutoSigma, SigmaTrial, SweepError, SweepPoint, SweepSettings,
-    discrepancy_choice, log_grid, sweep_sigma,
+    AUTO_BRACKET_STEP, AUTO_MISFIT_TOL, AlternatingRun, AutoSigma, SigmaTrial, SweepError,
+    SweepPoint, SweepSettings, discrepancy_choice, log_grid, sweep_sigma,
 };
 pub use workflow::{
     AUTO_SIGMA_TOL, BayesOptions, BayesUpdate, Observers, SigmaChoice, StageOne, WorkflowError,
@@ -65,6 +65,7 @@ use crate::core::modal::SPARSE_FROM_DOF;
 use crate::core::model::Model;
 use crate::core::model::sparse::{Csc, spmv_add};
 use augmented::{AugmentedFactor, AugmentedSymbolic};
+pub use reduced::AUGMENTED_FALLBACK_MAX_DOF;
 use shifted::ShiftedFactor;
 pub use shifted::{REFINE_ACCEPT, REFINE_MAX_STEPS, REFINE_TOL};
 
@@ -79,6 +80,16 @@ pub enum BayesError {
     Setting { name: &'static str, value: f64 },
     #[error("prior has {got} entries but the model has {expected} parameters")]
     PriorLength { expected: usize, got: usize },
+    #[error(
+        "mode {mode}: K(θ) − λM is singular to working precision at this (λ, θ), and the \
+         augmented least-squares system that would replace it is not factored above {limit} \
+         DOFs (this model has {n_dof}): it would need gigabytes"
+    )]
+    ShiftedSingular {
+        mode: usize,
+        n_dof: usize,
+        limit: usize,
+    },
     #[error("the Hessian of the reduced objective is not positive definite: not at a minimum")]
     NotAMinimum,
     #[error(

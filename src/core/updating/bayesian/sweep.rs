@@ -115,7 +115,11 @@ fn point(
         }
         None => None,
     };
-    let epsilon = evaluator.evaluate(model, data, &res.state.theta)?.epsilon;
+    // ε of mode matching at the MAP's θ, for comparison; where θ is so far out that the
+    // eigen solver fails there (a large σ_c leaves θ hardly constrained), not a number.
+    let epsilon = evaluator
+        .evaluate(model, data, &res.state.theta)
+        .map_or(f64::NAN, |e| e.epsilon);
     Ok(SweepPoint {
         sigma_c,
         mac: prob.mac_to_measured(&res.state.phi),
@@ -204,23 +208,31 @@ pub fn discrepancy_choice(points: &[SweepPoint], target: f64) -> Option<AutoSigm
     Some(done(last.0, last.1, false))
 }
 
+/// The first factor by which the automatic σ_c search steps up from the bottom of its
+/// range until the misfit falls below ν (each further step squares it).
+pub const AUTO_BRACKET_STEP: f64 = 10.0;
+
 /// The misfit is taken as on target when within this fraction of ν: the χ² target itself
 /// spreads by `√(2/ν)` (7 % for the four-bay frame's ν = 392, 5 % for ν ≈ 800), so a closer
 /// match only costs solves.
 pub const AUTO_MISFIT_TOL: f64 = 0.01;
 
 impl AutoSigma {
-    /// The discrepancy rule on `[from, to]`: the root of `ln(misfit(σ_c)/ν)` in `ln σ_c`,
-    /// bracketed by the two ends and refined by regula falsi with the Illinois modification
-    /// (Dowell & Jarratt, BIT 11 (1971) 168–174; superlinear on this smooth, monotone
-    /// curve, where bisection needs ~10 solves), a step that would land within a tenth of
-    /// the bracket of an end bisecting instead. It stops when the misfit is within
+    /// The discrepancy rule on `[from, to]`: the root of `ln(misfit(σ_c)/ν)` in `ln σ_c`.
+    /// It is bracketed from below — the bottom first, then steps up by
+    /// [`AUTO_BRACKET_STEP`], its square, its fourth power… (never past `to`), each
+    /// warm-started from the last — so the large σ_c where θ is hardly constrained are
+    /// solved only when the root lies near them;
+    /// then refined by regula falsi with the Illinois modification (Dowell & Jarratt, BIT
+    /// 11 (1971) 168–174; superlinear on this smooth, monotone curve, where bisection of
+    /// the whole range needs ~11 solves), a step kept a tenth of the bracket away from
+    /// either end. It stops when the misfit is within
     /// [`AUTO_MISFIT_TOL`] of ν or the bracket is `rel_tol` wide in σ_c; the σ_c returned
     /// has its misfit at or below ν (the smallest such σ_c found), or within
-    /// [`AUTO_MISFIT_TOL`] above it. Each trial is one MAP
-    /// solve warm-started from the θ of the trial nearest in `ln σ_c`. `progress` hears of
-    /// each trial as it starts (`None`) and when it ends (its misfit), with the target ν: on
-    /// a large model a trial takes seconds to a minute.
+    /// [`AUTO_MISFIT_TOL`] above it. Each trial is one MAP solve warm-started from the θ
+    /// of the trial nearest in `ln σ_c`. `progress` hears of each trial as it starts
+    /// (`None`) and when it ends (its misfit), with the target ν: on a large model a trial
+    /// takes seconds to a minute.
     pub fn search(
         model: &Model,
         data: &MeasuredData,
@@ -272,13 +284,24 @@ impl AutoSigma {
         };
         let on_target = |m: f64| (m / target - 1.0).abs() <= AUTO_MISFIT_TOL;
         let f = |m: f64| (m / target).ln();
-        let (lo0, hi0) = (from.ln(), to.ln());
-        let m_lo = misfit_at(lo0)?;
+        let (bottom, top) = (from.ln(), to.ln());
+        let m_lo = misfit_at(bottom)?;
         let (sigma, misfit, met) = if m_lo <= target {
             (from, m_lo, true)
         } else {
-            let m_hi = misfit_at(hi0)?;
-            if m_hi > target {
+            // Step up until the misfit falls to ν or the top is reached.
+            let (mut lo0, mut m_lo) = (bottom, m_lo);
+            let mut step = AUTO_BRACKET_STEP.ln();
+            let (hi0, m_hi) = loop {
+                let x = (lo0 + step).min(top);
+                step *= 2.0;
+                let m = misfit_at(x)?;
+                if m <= target || on_target(m) || x >= top {
+                    break (x, m);
+                }
+                (lo0, m_lo) = (x, m);
+            };
+            if m_hi > target && !on_target(m_hi) {
                 (to, m_hi, false)
             } else {
                 // f(lo) > 0 ≥ f(hi).
@@ -289,10 +312,8 @@ impl AutoSigma {
                 let mut kept: Option<bool> = None;
                 while hi - lo > rel_tol.ln_1p() && !on_target(m_at_hi) {
                     let width = hi - lo;
-                    let mut x = hi - f_hi * width / (f_hi - f_lo);
-                    if !(x > lo + 0.1 * width && x < hi - 0.1 * width) {
-                        x = 0.5 * (lo + hi);
-                    }
+                    let x = (hi - f_hi * width / (f_hi - f_lo))
+                        .clamp(lo + 0.1 * width, hi - 0.1 * width);
                     let m = misfit_at(x)?;
                     if m <= target {
                         (hi, f_hi, m_at_hi) = (x, f(m), m);
