@@ -284,15 +284,9 @@ fn peak_rss(cmd: &mut std::process::Command, log: &std::path::Path) -> u64 {
         .stderr(Stdio::from(out))
         .spawn()
         .unwrap();
-    let status_file = format!("/proc/{}/status", child.id());
     let mut peak_kib = 0u64;
     let status = loop {
-        if let Ok(s) = std::fs::read_to_string(&status_file)
-            && let Some(kib) = s
-                .lines()
-                .find_map(|l| l.strip_prefix("VmHWM:"))
-                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
-        {
+        if let Some(kib) = super::daemon::read_vm_hwm_kib(child.id() as i32) {
             peak_kib = peak_kib.max(kib);
         }
         if let Some(status) = child.try_wait().unwrap() {

@@ -369,11 +369,15 @@ mod deploy;
 mod field;
 mod tracking;
 
-/// Peak resident set size of a process (KiB).
+/// Peak resident set size of a running process (KiB).
 pub fn vm_hwm_kib(pid: i32) -> u64 {
-    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    read_vm_hwm_kib(pid).unwrap()
+}
+
+/// Peak resident set size of a process (KiB), `None` once it has exited.
+pub fn read_vm_hwm_kib(pid: i32) -> Option<u64> {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
     s.lines()
         .find_map(|l| l.strip_prefix("VmHWM:"))
         .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
-        .unwrap()
 }
