@@ -75,26 +75,7 @@ fn entries(
     let off_u = n + n_o;
     let sym = model.union_pattern().pattern.symbolic();
     // Rows of W^{1/2}L_o, each with its DOFs merged and sorted, and the same by DOF.
-    let l_rows: Vec<Vec<(usize, f64)>> = rows
-        .iter()
-        .map(|row| {
-            let mut d: Vec<(usize, f64)> = row
-                .dofs
-                .iter()
-                .map(|&(j, c)| (j, row.w.sqrt() * c))
-                .collect();
-            d.sort_by_key(|e| e.0);
-            d.dedup_by(|b, a| {
-                if a.0 == b.0 {
-                    a.1 += b.1;
-                    true
-                } else {
-                    false
-                }
-            });
-            d
-        })
-        .collect();
+    let l_rows = super::shifted::weighted_rows(rows);
     let mut l_cols: Vec<Vec<(usize, f64)>> = vec![Vec::new(); n];
     for (r, d) in l_rows.iter().enumerate() {
         for &(j, v) in d {

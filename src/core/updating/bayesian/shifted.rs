@@ -77,8 +77,6 @@ pub(super) struct ShiftedFactor {
     /// `R` of the QR of `[σ_c B; I]` (`n_o × n_o`, upper triangular): `RᵀR = S`.
     r: Mat<f64>,
     sigma: f64,
-    /// Refinement steps of the last solve (for tests and reports).
-    pub steps: std::sync::atomic::AtomicUsize,
 }
 
 /// Rows of `W^{1/2}L_o`, each with its DOFs merged and sorted.
@@ -147,7 +145,6 @@ impl ShiftedFactor {
             b: Mat::zeros(n, n_o),
             r: Mat::zeros(n_o, n_o),
             sigma,
-            steps: 0.into(),
         };
         let mut b = Mat::zeros(n, n_o);
         for (r, d) in factor.g_rows.iter().enumerate() {
@@ -174,28 +171,18 @@ impl ShiftedFactor {
         Some(factor)
     }
 
-    /// `X ← A⁻¹X` in the model's numbering.
+    /// `X ← A⁻¹X` in the model's numbering (`X` an owned matrix: contiguous columns).
     fn solve_a(&self, order: &Reordered, mut x: MatMut<'_, f64>) {
         let k = x.ncols();
         let mut y = Mat::<f64>::zeros(x.nrows(), k);
         for j in 0..k {
-            let mut src = vec![0.0; x.nrows()];
-            src.iter_mut()
-                .zip(x.as_ref().col(j).iter())
-                .for_each(|(a, b)| *a = *b);
-            order.permute(&src, col_slice_mut(y.as_mut(), j));
+            order.permute(col_slice(x.as_ref(), j), col_slice_mut(y.as_mut(), j));
         }
         let ldlt = LdltRef::new(&order.symbolic, &self.l_values);
         let mut mem = MemBuffer::new(order.symbolic.solve_in_place_scratch::<f64>(k, Par::Seq));
         ldlt.solve_in_place_with_conj(Conj::No, y.as_mut(), Par::Seq, MemStack::new(&mut mem));
-        let mut out = vec![0.0; x.nrows()];
         for j in 0..k {
-            order.unpermute(col_slice(y.as_ref(), j), &mut out);
-            x.as_mut()
-                .col_mut(j)
-                .iter_mut()
-                .zip(&out)
-                .for_each(|(a, b)| *a = *b);
+            order.unpermute(col_slice(y.as_ref(), j), col_slice_mut(x.as_mut(), j));
         }
     }
 
@@ -270,7 +257,7 @@ impl ShiftedFactor {
         let (mut s, mut u) = self.woodbury(order, b, c);
         let b_norms: Vec<f64> = (0..k).map(|j| b.col(j).norm_l2()).collect();
         let mut last = f64::INFINITY;
-        for step in 1..=REFINE_MAX_STEPS {
+        for _ in 0..REFINE_MAX_STEPS {
             // r₁ = b₁ − s₁ − σ⁻¹Au, r₂ = b₂ − s₂ − Gu, r₃ = c − σ⁻¹As₁ − Gᵀs₂.
             let mut r12 = b - &s;
             self.apply_a(
@@ -305,7 +292,6 @@ impl ShiftedFactor {
                     fs.max(fu)
                 })
                 .fold(0.0, f64::max);
-            self.steps.store(step, std::sync::atomic::Ordering::Relaxed);
             if !change.is_finite() {
                 return None;
             }
