@@ -165,3 +165,126 @@ fn a_parameter_beyond_what_the_data_resolve_stops_at_its_bound() {
     let e = mm.run(&model, &data, &[1.0; 17], &bad).unwrap_err();
     assert!(e.to_string().contains("bounds"), "{e}");
 }
+
+/// `boltwatch update` on the lab frame against a plain SciPy Gauss–Newton with exact
+/// sensitivities (`tests/python/gauss_newton_reference.py`: dense `eigh`, MAC pairing,
+/// Nelson's derivatives by dense solves, `lstsq` steps; not boltwatch) on the matrices
+/// `boltwatch export-matrices` wrote and a noisy simulated set (17 parameters far from
+/// nominal, 9 modes, 1 % frequency CoV, 5 % NSD), both from θ0 = 1 as whole processes. Both
+/// reach the same minimum: ε within 1e-9 relative and θ within 1e-3 σ (the two stop on
+/// steps below 1e-5 relative, so θ can differ by about that). The times of interleaved runs
+/// are printed (medians; the README's figures come from release builds), never asserted.
+#[test]
+fn a_scipy_gauss_newton_reaches_the_same_lab_frame_minimum() {
+    use std::process::Command;
+    use std::time::Instant;
+    let python = super::common::python_venv(
+        "py-scipy-venv",
+        "import scipy.sparse.linalg, scipy.io",
+        &["scipy==1.14.1"],
+    );
+    let dir = std::env::temp_dir().join(format!("bw-gn-reference-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let model = super::common::model_path("lab-frame");
+    let bin = env!("CARGO_BIN_EXE_boltwatch");
+    let path = |name: &str| dir.join(name).to_str().unwrap().to_string();
+    let run = |program: &str, args: &[&str]| {
+        let start = Instant::now();
+        let out = Command::new(program).args(args).output().unwrap();
+        let secs = start.elapsed().as_secs_f64();
+        assert!(
+            out.status.success(),
+            "{program} {args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        (secs, out.stdout)
+    };
+    run(
+        bin,
+        &[
+            "export-matrices",
+            "--model",
+            &model,
+            "-o",
+            &path("matrices"),
+        ],
+    );
+    run(
+        bin,
+        &[
+            "simulate",
+            "--model",
+            &model,
+            "--theta",
+            "0.8,1.6,0.7,1.2,0.5,1.1,2.5,0.9,1.4,0.6,1.8,0.75,1.3,0.55,1.05,2.2,0.95",
+            "--seed",
+            "1",
+            "-o",
+            &path("set.json"),
+        ],
+    );
+    let script = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/python/gauss_newton_reference.py"
+    );
+    let (mut ours, mut scipy) = (Vec::new(), Vec::new());
+    let mut reference = serde_json::Value::Null;
+    for _ in 0..5 {
+        let update = [
+            "update",
+            "--model",
+            &model,
+            "--data",
+            &path("set.json"),
+            "-o",
+            &path("update.json"),
+        ];
+        ours.push(run(bin, &update).0);
+        let (secs, stdout) = run(
+            python.to_str().unwrap(),
+            &[script, &path("matrices"), &path("set.json")],
+        );
+        scipy.push(secs);
+        reference = serde_json::from_slice(&stdout).unwrap();
+    }
+    let ours_json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(path("update.json")).unwrap()).unwrap();
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let (t_ours, t_scipy) = (median(&mut ours), median(&mut scipy));
+    println!(
+        "whole process, median of 5 interleaved runs: boltwatch update {:.1} ms ({} \
+         iterations), SciPy Gauss–Newton {:.0} ms ({} iterations): {:.0}×",
+        1e3 * t_ours,
+        ours_json["iterations"],
+        1e3 * t_scipy,
+        reference["iterations"],
+        t_scipy / t_ours
+    );
+    assert_eq!(reference["converged"], true, "the reference: {reference}");
+    let (e_ours, e_ref) = (
+        ours_json["epsilon"].as_f64().unwrap(),
+        reference["epsilon"].as_f64().unwrap(),
+    );
+    assert!(
+        (e_ours - e_ref).abs() <= 1e-9 * e_ref,
+        "ε {e_ours} against the reference's {e_ref}"
+    );
+    for (l, p) in ours_json["parameters"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .enumerate()
+    {
+        let (theta, std) = (p["theta"].as_f64().unwrap(), p["std"].as_f64().unwrap());
+        let other = reference["theta"][l].as_f64().unwrap();
+        assert!(
+            (theta - other).abs() <= 1e-3 * std,
+            "θ{}: {theta} against the reference's {other} (σ {std})",
+            l + 1
+        );
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}

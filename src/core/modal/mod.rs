@@ -13,7 +13,7 @@ pub use dense::DenseEigen;
 pub use eigen::{EigenPairs, EigenSolver};
 pub use krylov::SparseEigen;
 pub use mac::{mac, pair_modes};
-pub use sensitivity::Nelson;
+pub use sensitivity::{Nelson, SharedStiffness};
 
 /// Models with at least this many DOFs get the sparse solver from [`solver_for`]. Below it
 /// the dense solver is as fast or faster from a cold start and is the reference; its full

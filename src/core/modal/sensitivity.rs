@@ -26,28 +26,58 @@ use faer::sparse::SparseColMatRef;
 use faer::sparse::linalg::solvers::{Lu, SymbolicLu};
 use faer::{Conj, Mat, MatMut, Par, Side};
 
+use std::sync::{Arc, PoisonError, RwLock};
+
 use super::{ModalError, col_slice, col_slice_mut};
-use crate::core::model::Model;
 use crate::core::model::sparse::spmv_add;
+use crate::core::model::{Model, Reordered};
 
 /// Largest normwise backward error accepted from the unpivoted `LDLᵀ` solve; a stable
 /// solve gives ~1e-16 times a modest growth factor.
 pub const BACKWARD_TOL: f64 = 1e-12;
 
+/// `K(θ)` on the lower triangle of [`Model::reordered`], for the θ it was formed at (empty:
+/// none yet): shared by the Nelson workspaces of one evaluator, whose modes of one Jacobian
+/// each need only `− λM` on top. Kept in place: a fresh copy per Jacobian cost 20–60 ms in
+/// page faults on the four-bay solid frame, and one copy per workspace 13.5 MB each.
+#[derive(Clone, Default)]
+pub struct SharedStiffness(Arc<RwLock<(Vec<f64>, Vec<f64>)>>);
+
+impl SharedStiffness {
+    /// `K(θ)` into `out` (the reordered lower triangle's length), formed first if the
+    /// shared copy is of another θ.
+    fn copy_at(&self, model: &Model, order: &Reordered, theta: &[f64], out: &mut [f64]) {
+        {
+            let held = self.0.read().unwrap_or_else(PoisonError::into_inner);
+            if held.0 == theta {
+                out.copy_from_slice(&held.1);
+                return;
+            }
+        }
+        let mut held = self.0.write().unwrap_or_else(PoisonError::into_inner);
+        if held.0 != theta {
+            held.1.resize(order.len(), 0.0);
+            model.shifted_stiffness_reordered(order, theta, 0.0, &mut held.1);
+            held.0.clear();
+            held.0.extend_from_slice(theta);
+        }
+        out.copy_from_slice(&held.1);
+    }
+}
+
 /// Workspace for Nelson's method on one model.
 pub struct Nelson {
-    /// Symbolic LU of the union pattern (the fallback).
-    symbolic: SymbolicLu<usize>,
+    /// Symbolic LU of the union pattern (the fallback), analysed on first use: the
+    /// analysis holds ~60 MB at its peak on the four-bay solid frame, and the fallback is
+    /// rare.
+    symbolic: Option<SymbolicLu<usize>>,
     l_values: Vec<f64>,
     mem: MemBuffer,
     /// The pinned `K(θ) − λM`, lower triangle in the reordered numbering
     /// ([`Model::reordered`]; its symbolic `LDLᵀ` analysis is the model's).
     values: Vec<f64>,
-    /// `K(θ)` there, for the θ in `k_theta` (empty: none yet), shared by the modes of one
-    /// Jacobian: each needs only `− λM` on top. Kept in place: a fresh copy per Jacobian
-    /// cost 20–60 ms in page faults on the four-bay solid frame.
-    k_values: Vec<f64>,
-    k_theta: Vec<f64>,
+    /// `K(θ)` there.
+    k_theta: SharedStiffness,
     m_phi: Vec<f64>,
     /// Per parameter, the columns of `K_l` that hold entries and the rows they reach
     /// (ascending): a connection's `K_l` touches a few DOFs, so `K_l φ` and `φᵀ K_l φ` are
@@ -64,12 +94,14 @@ pub struct Nelson {
 }
 
 impl Nelson {
-    /// Builds the symbolic LU of the union pattern of `K0`, every `K_l` and `M` (the
-    /// fallback), and sizes the `LDLᵀ` on the model's reordered pattern.
+    /// Sizes the `LDLᵀ` on the model's reordered pattern.
     pub fn new(model: &Model) -> Result<Self, ModalError> {
-        let pattern = &model.union_pattern().pattern;
-        let symbolic = SymbolicLu::try_new(pattern.symbolic())
-            .map_err(|e| ModalError::Factorization(format!("{e:?}")))?;
+        Self::sharing(model, SharedStiffness::default())
+    }
+
+    /// Sizes the `LDLᵀ` on the model's reordered pattern; `K(θ)` is held by `k_theta`,
+    /// which other workspaces of the same model may share.
+    pub fn sharing(model: &Model, k_theta: SharedStiffness) -> Result<Self, ModalError> {
         let order = super::reordered(model)?;
         let cholesky = &order.symbolic;
         let n = model.n_dof();
@@ -95,12 +127,11 @@ impl Nelson {
             })
             .unzip();
         Ok(Self {
-            symbolic,
+            symbolic: None,
             l_values: vec![0.0; cholesky.len_val()],
             mem,
             values: vec![0.0; order.len()],
-            k_values: vec![0.0; order.len()],
-            k_theta: Vec::new(),
+            k_theta,
             m_phi: vec![0.0; n],
             k_cols,
             k_rows,
@@ -133,12 +164,7 @@ impl Nelson {
         let kp = order.inv[k];
 
         // A = K(θ) − λM, row and column kp replaced by the identity.
-        if self.k_theta != theta {
-            model.shifted_stiffness_reordered(order, theta, 0.0, &mut self.k_values);
-            self.k_theta.clear();
-            self.k_theta.extend_from_slice(theta);
-        }
-        self.values.copy_from_slice(&self.k_values);
+        self.k_theta.copy_at(model, order, theta, &mut self.values);
         model.subtract_mass_reordered(order, lambda, &mut self.values);
         let lower = order.lower.as_ref();
         // Column kp holds rows kp.. (the diagonal first); row kp lies in columns ..kp.
@@ -275,7 +301,15 @@ impl Nelson {
             }
         }
         let a = SparseColMatRef::new(sym, &values);
-        let lu = Lu::try_new_with_symbolic(self.symbolic.clone(), a)
+        let symbolic = match &self.symbolic {
+            Some(s) => s.clone(),
+            None => {
+                let s = SymbolicLu::try_new(sym)
+                    .map_err(|e| ModalError::Factorization(format!("{e:?}")))?;
+                self.symbolic.insert(s).clone()
+            }
+        };
+        let lu = Lu::try_new_with_symbolic(symbolic, a)
             .map_err(|e| ModalError::Factorization(format!("{e:?}")))?;
         let order = super::reordered(model)?;
         for l in 0..v.ncols() {

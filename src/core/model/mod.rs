@@ -120,14 +120,15 @@ pub struct Model {
     pub name: String,
     dof_labels: Vec<String>,
     // The matrices are shared between copies of a model (a tracker's, a cross-check's, the
-    // daemon's): on the four-bay solid frame each copy was ~0.3 GB.
-    k0: std::sync::Arc<Csc>,
+    // daemon's): on the four-bay solid frame each copy was ~0.3 GB. `K0` is the union
+    // pattern's own matrix ([`UnionPattern::pattern`]).
     k_params: std::sync::Arc<Vec<Csc>>,
     m: std::sync::Arc<Csc>,
     parameters: Vec<Parameter>,
     connections: Vec<Connection>,
     channels: Vec<Channel>,
-    /// Union of the patterns of K0, every K_l and M (positions 0, 1..=p, p+1 in `maps`).
+    /// Union of the patterns of K0, every K_l and M (positions 0, 1..=p, p+1 in `maps`),
+    /// carrying K0's values.
     union: std::sync::Arc<UnionPattern>,
     /// DOFs without mass, ascending (see `finish::massless_dofs`).
     massless: Vec<usize>,
@@ -262,9 +263,10 @@ impl Model {
             .collect()
     }
 
-    /// `K0`, the part of the stiffness no parameter scales.
+    /// `K0`, the part of the stiffness no parameter scales, on the union pattern (an
+    /// explicit zero where only a `K_l`, `M` or the diagonal has an entry).
     pub fn k0(&self) -> &Csc {
-        &self.k0
+        &self.union.pattern
     }
     /// `K_l = ∂K/∂θ_l`, paper (1)–(2).
     pub fn k_param(&self, l: usize) -> &Csc {
@@ -284,23 +286,25 @@ impl Model {
             return Ok(r);
         }
         let r = std::sync::Arc::new(Reordered::new(&self.union)?);
+        // The ordering's and analysis' scratch (~0.1 GB on the four-bay frame) back to
+        // the system, not kept for allocations of other sizes.
+        crate::release_free_memory();
         Ok(self.reordered.get_or_init(|| r))
     }
 
-    /// Bytes held by the matrices (values and indices of `K0`, every `K_l`, `M`, and their
-    /// union pattern with its maps); copies of a model share them, and the reordered
-    /// analysis.
+    /// Bytes held by the matrices (values and indices of every `K_l`, `M`, and their
+    /// union pattern, which carries `K0`, with its maps); copies of a model share them, and
+    /// the reordered analysis.
     pub fn matrix_bytes(&self) -> u64 {
         let csc = |a: &Csc| (a.val().len() * 16 + (a.ncols() + 1) * 8) as u64;
-        csc(&self.k0)
-            + self.k_params.iter().map(csc).sum::<u64>()
+        self.k_params.iter().map(csc).sum::<u64>()
             + csc(&self.m)
             + csc(&self.union.pattern)
             + self
                 .union
                 .maps
                 .iter()
-                .map(|m| m.len() as u64 * 8)
+                .map(|m| m.len() as u64 * 4)
                 .sum::<u64>()
     }
 
@@ -335,7 +339,7 @@ impl Model {
     /// 1..=p = K_l, p + 1 = M, as in the union).
     fn shifted_into(&self, layout: &impl ValueLayout, theta: &[f64], sigma: f64, out: &mut [f64]) {
         out.iter_mut().for_each(|v| *v = 0.0);
-        layout.add_into(0, &self.k0, 1.0, out);
+        layout.add_into(0, self.k0(), 1.0, out);
         for (l, kl) in self.k_params.iter().enumerate() {
             layout.add_into(l + 1, kl, theta[l], out);
         }
@@ -351,7 +355,7 @@ impl Model {
     /// Dense `K(θ)` into `out` (n × n), paper (1).
     pub fn stiffness_dense_into(&self, theta: &[f64], mut out: MatMut<'_, f64>) {
         out.fill(0.0);
-        scatter_dense(&self.k0, 1.0, out.rb_mut());
+        scatter_dense(self.k0(), 1.0, out.rb_mut());
         for (l, kl) in self.k_params.iter().enumerate() {
             scatter_dense(kl, theta[l], out.rb_mut());
         }
@@ -382,7 +386,7 @@ impl Model {
             sparse::csc_from_triplets(n, entries.into_iter())
         };
         let mut mats = Vec::with_capacity(self.n_params() + 2);
-        mats.push(with_diagonal(&self.k0, 1.0 + k0_scale, springs));
+        mats.push(with_diagonal(self.k0(), 1.0 + k0_scale, springs));
         mats.extend(self.k_params.iter().cloned());
         mats.push(with_diagonal(&self.m, 1.0, masses));
         let mut model = finish::finish(

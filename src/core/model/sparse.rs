@@ -297,14 +297,18 @@ fn gather_rows<const R: usize>(a: &Csc, x: MatRef<'_, f64>, y: MatMut<'_, f64>, 
     });
 }
 
-/// The union of the patterns of several matrices, with each matrix's entries mapped to
-/// positions in the union's value array.
+/// The union of the patterns of several matrices, carrying the first one's values, with
+/// each other matrix's entries mapped to positions in the union's value array.
 #[derive(Debug, Clone)]
 pub struct UnionPattern {
-    /// The union pattern, all values zero.
+    /// The union pattern with the values of the first source matrix (zero where it has no
+    /// entry). A model's `K0` is this matrix: on a solid model `K0` holds nearly every
+    /// entry of the union, and a separate copy with its own map to the union took 54 MB
+    /// of the four-bay frame's 31,458 DOF.
     pub pattern: Csc,
-    /// For each source matrix, the union position of each of its stored entries.
-    pub maps: Vec<Vec<usize>>,
+    /// For each source matrix, the union position of each of its stored entries; the
+    /// first one's is the identity, stored empty (see [`ValueLayout::add_into`]).
+    pub maps: Vec<Vec<u32>>,
 }
 
 impl UnionPattern {
@@ -350,34 +354,44 @@ impl UnionPattern {
             row_idx.extend(rows);
         }
         let nnz = row_idx.len();
-        let pattern = Csc::new(
-            SymbolicSparseColMat::new_checked(n, n, col_ptr, None, row_idx),
-            vec![0.0; nnz],
+        assert!(
+            nnz < MIRROR as usize,
+            "a union pattern of {nnz} entries does not fit the 32-bit positions"
         );
-        let ps = pattern.symbolic();
-        let maps = mats
-            .iter()
-            .map(|m| {
-                let s = m.symbolic();
-                let parts: Vec<Vec<usize>> = blocks
-                    .par_windows(2)
-                    .map(|w| {
-                        let mut map = Vec::new();
-                        for j in w[0]..w[1] {
-                            let rows = ps.row_idx_of_col_raw(j);
-                            let base = ps.col_ptr()[j];
-                            for &i in s.row_idx_of_col_raw(j) {
-                                let pos = rows.binary_search(&i).expect("entry is in the union");
-                                map.push(base + pos);
-                            }
+        let ps = SymbolicSparseColMat::new_checked(n, n, col_ptr, None, row_idx);
+        // The union position of every stored entry of `m`.
+        let map_of = |m: &Csc| -> Vec<u32> {
+            let s = m.symbolic();
+            let parts: Vec<Vec<u32>> = blocks
+                .par_windows(2)
+                .map(|w| {
+                    let mut map = Vec::new();
+                    for j in w[0]..w[1] {
+                        let rows = ps.row_idx_of_col_raw(j);
+                        let base = ps.col_ptr()[j];
+                        for &i in s.row_idx_of_col_raw(j) {
+                            let pos = rows.binary_search(&i).expect("entry is in the union");
+                            map.push((base + pos) as u32);
                         }
-                        map
-                    })
-                    .collect();
-                parts.concat()
-            })
-            .collect();
-        Self { pattern, maps }
+                    }
+                    map
+                })
+                .collect();
+            parts.concat()
+        };
+        let mut values = vec![0.0; nnz];
+        let mut maps = Vec::with_capacity(mats.len());
+        if let Some(first) = mats.first() {
+            for (&pos, &v) in map_of(first).iter().zip(first.val()) {
+                values[pos as usize] = v;
+            }
+            maps.push(Vec::new());
+        }
+        maps.extend(mats.iter().skip(1).map(|m| map_of(m)));
+        Self {
+            pattern: Csc::new(ps, values),
+            maps,
+        }
     }
 }
 
@@ -397,27 +411,38 @@ fn column_blocks(n: usize) -> Vec<usize> {
 /// the union's own, or its reordered lower triangle.
 pub trait ValueLayout {
     /// Per source matrix, the position of each of its stored entries in the value array,
-    /// or [`MIRROR`] for an entry the array does not hold (its symmetric twin does).
-    fn maps(&self) -> &[Vec<usize>];
+    /// or [`MIRROR`] for an entry the array does not hold (its symmetric twin does). Empty
+    /// for a source stored on the layout's own pattern (the union's first) and for one
+    /// without entries.
+    fn maps(&self) -> &[Vec<u32>];
 
-    /// `out += alpha · (source matrix k)` on the value array.
+    /// `out += alpha · (source matrix k)` on the value array (for a source stored on the
+    /// layout's own pattern, `mat` is that matrix).
     fn add_into(&self, k: usize, mat: &Csc, alpha: f64, out: &mut [f64]) {
-        for (&pos, &v) in self.maps()[k].iter().zip(mat.val()) {
+        let map = &self.maps()[k];
+        if map.is_empty() {
+            debug_assert!(mat.val().is_empty() || mat.val().len() == out.len());
+            for (o, &v) in out.iter_mut().zip(mat.val()) {
+                *o += alpha * v;
+            }
+            return;
+        }
+        for (&pos, &v) in map.iter().zip(mat.val()) {
             if pos != MIRROR {
-                out[pos] += alpha * v;
+                out[pos as usize] += alpha * v;
             }
         }
     }
 }
 
 impl ValueLayout for UnionPattern {
-    fn maps(&self) -> &[Vec<usize>] {
+    fn maps(&self) -> &[Vec<u32>] {
         &self.maps
     }
 }
 
 impl ValueLayout for Reordered {
-    fn maps(&self) -> &[Vec<usize>] {
+    fn maps(&self) -> &[Vec<u32>] {
         &self.maps
     }
 }
@@ -443,12 +468,12 @@ pub struct Reordered {
     /// For each source matrix of the union, the position in `lower`'s values of each of
     /// its stored entries, or `MIRROR` for an entry above the diagonal (whose value its
     /// symmetric twin below carries).
-    maps: Vec<Vec<usize>>,
+    maps: Vec<Vec<u32>>,
 }
 
 /// Marks a source entry a [`ValueLayout`] does not hold: in [`Reordered`], one above the
 /// diagonal.
-pub const MIRROR: usize = usize::MAX;
+pub const MIRROR: u32 = u32::MAX;
 
 impl std::fmt::Debug for Reordered {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -511,10 +536,11 @@ impl Reordered {
             let col = &mut entries[col_ptr[c]..col_ptr[c + 1]];
             col.sort_unstable();
             for &(row, pos) in col.iter() {
-                below[pos] = row_idx.len();
+                below[pos] = row_idx.len() as u32;
                 row_idx.push(row);
             }
         }
+        drop(entries);
         // faer reads an identity-ordered pattern as its upper triangle: the transpose
         // (columns read in order, so each of its columns comes out sorted).
         let mut upper_ptr = vec![0usize; n + 1];
@@ -540,11 +566,14 @@ impl Reordered {
             Default::default(),
         )?;
         let lower = SymbolicSparseColMat::new_checked(n, n, col_ptr, None, row_idx);
-        let maps = union
+        // The union's first source is stored on it: its positions are `below` itself.
+        let mut maps: Vec<Vec<u32>> = union
             .maps
             .iter()
-            .map(|m| m.iter().map(|&pos| below[pos]).collect())
+            .skip(1)
+            .map(|m| m.iter().map(|&pos| below[pos as usize]).collect())
             .collect();
+        maps.insert(0, below);
         Ok(Self {
             fwd,
             inv,
@@ -699,7 +728,7 @@ mod tests {
         let union = UnionPattern::new(n, &[&a, &b]);
         let r = Reordered::new(&union).unwrap();
         let mut values = vec![0.0; r.len()];
-        r.add_into(0, &a, 1.0, &mut values);
+        r.add_into(0, &union.pattern, 1.0, &mut values);
         r.add_into(1, &b, -2.0, &mut values);
         let mut full = Mat::<f64>::zeros(n, n);
         let lower = r.lower.as_ref();

@@ -12,7 +12,7 @@ use faer::Mat;
 use super::data::MeasuredData;
 use crate::core::modal::eigen::{STRICT_RESIDUAL, WarmBlock};
 use crate::core::modal::{
-    EigenPairs, EigenSolver, ModalError, Nelson, SPARSE_FROM_DOF, mac, solver_for,
+    EigenPairs, EigenSolver, ModalError, Nelson, SPARSE_FROM_DOF, SharedStiffness, mac, solver_for,
 };
 use crate::core::model::Model;
 
@@ -97,8 +97,9 @@ impl Evaluator {
                 } else {
                     cores.min(SMALL_MODEL_THREADS)
                 };
+                let k_theta = SharedStiffness::default();
                 (0..threads)
-                    .map(|_| NelsonWorkspace::new(model))
+                    .map(|_| NelsonWorkspace::new(model, k_theta.clone()))
                     .collect::<Result<_, _>>()?
             },
             last_eig: None,
@@ -290,9 +291,10 @@ struct NelsonWorkspace {
 }
 
 impl NelsonWorkspace {
-    fn new(model: &Model) -> Result<Self, ModalError> {
+    fn new(model: &Model, k_theta: SharedStiffness) -> Result<Self, ModalError> {
+        let nelson = Nelson::sharing(model, k_theta)?;
         Ok(Self {
-            nelson: Nelson::new(model)?,
+            nelson,
             dphi: Mat::zeros(model.n_dof(), model.n_params()),
             dlambda: vec![0.0; model.n_params()],
             phi: vec![0.0; model.n_dof()],

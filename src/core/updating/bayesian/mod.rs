@@ -56,8 +56,8 @@ pub use sweep::{
     SweepPoint, SweepSettings, discrepancy_choice, log_grid, sweep_sigma,
 };
 pub use workflow::{
-    AUTO_SIGMA_TOL, BayesOptions, BayesUpdate, Observers, SigmaChoice, StageOne, WorkflowError,
-    bayesian_update, choose_sigma_c, stage_one,
+    AUTO_SIGMA_TOL, AUTO_TRIAL_ITERATIONS, BayesOptions, BayesUpdate, Observers, SigmaChoice,
+    StageOne, WorkflowError, bayesian_update, choose_sigma_c, stage_one,
 };
 
 use super::data::MeasuredData;

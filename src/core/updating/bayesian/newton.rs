@@ -165,22 +165,42 @@ impl BayesProblem {
         }
         // If no cold start converged up to 10^CONTINUATION_CLIMBS σ_c, or a warm stage
         // fails on the way down, the trouble is not the narrow valley of a small σ_c
-        // (typically θ runs against the boundary θ > 0): carry on at the target from where
-        // the first cold start stopped, with the budget left.
-        let carry_on = |prob: &mut Self, mut stages: Vec<ContinuationStage>, mut used: usize| {
+        // (typically θ runs against the boundary θ > 0): carry on at the target, with the
+        // budget left, from where the first cold start stopped or from where the failed
+        // stage at the target stopped, whichever is lower in J_p. (Four-bay frame, seed 3,
+        // σ_c = 1: the cold start stalls at J_p = 5.1e4, the stage at the target reaches
+        // 377.2 and stops on a Hessian that is not positive definite; carrying on from the
+        // cold start ended at 2.6e4.)
+        let carry_on = |prob: &mut Self,
+                        mut stages: Vec<ContinuationStage>,
+                        mut used: usize,
+                        failed: Option<&BayesResult>| {
             prob.inv_s2 = 1.0 / (target * target);
-            let more = prob.newton(
-                &direct.state.lambda,
-                &direct.state.theta,
-                max_iterations.saturating_sub(used),
-                NewtonStop::FINAL,
-            )?;
+            let budget = max_iterations.saturating_sub(used);
+            let from_direct = |prob: &Self| {
+                prob.newton(
+                    &direct.state.lambda,
+                    &direct.state.theta,
+                    budget,
+                    NewtonStop::FINAL,
+                )
+            };
+            let more = match failed {
+                // A point that low can sit on an eigenvalue of the model to rounding (σ_c
+                // small: the model equation nearly holds), where a large model's φ substep
+                // cannot be solved (four-bay frame, seed 1, σ_c = 1): then, as before, from
+                // the cold start.
+                Some(r) if r.terms.total < direct.terms.total => prob
+                    .newton(&r.state.lambda, &r.state.theta, budget, NewtonStop::FINAL)
+                    .or_else(|_| from_direct(prob))?,
+                _ => from_direct(prob)?,
+            };
             used += more.iterations;
             record(&mut stages, target, &more);
             Ok(finish(prob, more, stages, used))
         };
         let Some(mut good) = good else {
-            return carry_on(self, stages, used);
+            return carry_on(self, stages, used, None);
         };
         // Descend with warm starts; only the last stage, at the target, converges fully.
         while sigma > target {
@@ -199,16 +219,21 @@ impl BayesProblem {
             } else {
                 NewtonStop::FINAL
             };
-            let r = self.newton(
+            // A stage that meets a point where the φ substep cannot be solved (see
+            // `carry_on`) fails like one that does not converge.
+            let Ok(r) = self.newton(
                 &good.state.lambda,
                 &good.state.theta,
                 budget.min(max_iterations - used),
                 stop,
-            )?;
+            ) else {
+                return carry_on(self, stages, used, None);
+            };
             used += r.iterations;
             record(&mut stages, next, &r);
             if !r.converged {
-                return carry_on(self, stages, used);
+                // A stage above the target is at another σ_c: its J_p is not comparable.
+                return carry_on(self, stages, used, (next == target).then_some(&r));
             }
             sigma = next;
             good = r;

@@ -176,6 +176,9 @@ pub struct AutoSigma {
     pub met: bool,
     /// Every σ_c tried, with its misfit.
     pub trials: Vec<(f64, f64)>,
+    /// θ of the MAP at the chosen σ_c, when a trial solved it there (the search's choice;
+    /// not the sweep's, which is interpolated): the final solve starts from it.
+    pub theta: Option<Vec<f64>>,
 }
 
 /// The discrepancy rule applied to a finished sweep (ascending σ_c): the first crossing of
@@ -193,6 +196,7 @@ pub fn discrepancy_choice(points: &[SweepPoint], target: f64) -> Option<AutoSigm
         misfit,
         met,
         trials: trials.clone(),
+        theta: None,
     };
     if first.1 <= target {
         return Some(done(first.0, first.1, true));
@@ -226,7 +230,11 @@ impl AutoSigma {
     /// then refined by regula falsi with the Illinois modification (Dowell & Jarratt, BIT
     /// 11 (1971) 168–174; superlinear on this smooth, monotone curve, where bisection of
     /// the whole range needs ~11 solves), a step kept a tenth of the bracket away from
-    /// either end. It stops when the misfit is within
+    /// either end; it bisects instead after any step that did not halve the bracket and
+    /// when one end's `ln(misfit/ν)` is over ten times the other's (the curve can jump:
+    /// four-bay seed 3 falls from 56 ν at σ_c = 1.59 to 0.96 ν at 2.4 and stays flat above,
+    /// where unguarded regula falsi crept down by tenths of the bracket, six trials without
+    /// reaching ν). It stops when the misfit is within
     /// [`AUTO_MISFIT_TOL`] of ν or the bracket is `rel_tol` wide in σ_c; the σ_c returned
     /// has its misfit at or below ν (the smallest such σ_c found), or within
     /// [`AUTO_MISFIT_TOL`] above it. Each trial is one MAP solve warm-started from the θ
@@ -310,10 +318,19 @@ impl AutoSigma {
                 let mut m_at_hi = m_hi;
                 // Which end the last two steps kept (Illinois: halve a kept end's f).
                 let mut kept: Option<bool> = None;
+                // Bisect next when the last step did not halve the bracket.
+                let mut bisect = false;
                 while hi - lo > rel_tol.ln_1p() && !on_target(m_at_hi) {
                     let width = hi - lo;
-                    let x = (hi - f_hi * width / (f_hi - f_lo))
-                        .clamp(lo + 0.1 * width, hi - 0.1 * width);
+                    // A secant between ends whose f differ by more than a factor of ten
+                    // lands next to the smaller one, which moves the bracket by little.
+                    let lopsided = f_lo > 10.0 * -f_hi || -f_hi > 10.0 * f_lo;
+                    let x = if bisect || lopsided {
+                        lo + 0.5 * width
+                    } else {
+                        (hi - f_hi * width / (f_hi - f_lo))
+                            .clamp(lo + 0.1 * width, hi - 0.1 * width)
+                    };
                     let m = misfit_at(x)?;
                     if m <= target {
                         (hi, f_hi, m_at_hi) = (x, f(m), m);
@@ -332,16 +349,22 @@ impl AutoSigma {
                             (hi, m_at_hi) = (x, m);
                         }
                     }
+                    bisect = hi - lo > 0.5 * width;
                 }
                 (hi.exp(), m_at_hi, true)
             }
         };
+        let theta = solved
+            .iter()
+            .find(|(x, _)| (x - sigma.ln()).abs() <= 1e-12)
+            .map(|(_, t)| t.clone());
         Ok(Self {
             sigma_c: sigma,
             target,
             misfit,
             met,
             trials,
+            theta,
         })
     }
 }
