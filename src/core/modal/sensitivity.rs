@@ -17,7 +17,8 @@
 //! generic right-hand side, as an unstable factorization spoils every solve); above
 //! `BACKWARD_TOL` (a tiny pivot grew the factors)
 //! the system is solved again by a sparse LU with partial pivoting. Both symbolic
-//! factorizations depend only on the pattern and are computed once per model.
+//! factorizations depend only on the pattern: the `LDLᵀ`'s is the model's, computed once;
+//! the LU's is computed by a workspace when it first falls back.
 
 use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::linalg::cholesky::ldlt::factor::LdltRegularization;

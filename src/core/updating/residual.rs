@@ -292,9 +292,8 @@ struct NelsonWorkspace {
 
 impl NelsonWorkspace {
     fn new(model: &Model, k_theta: SharedStiffness) -> Result<Self, ModalError> {
-        let nelson = Nelson::sharing(model, k_theta)?;
         Ok(Self {
-            nelson,
+            nelson: Nelson::sharing(model, k_theta)?,
             dphi: Mat::zeros(model.n_dof(), model.n_params()),
             dlambda: vec![0.0; model.n_params()],
             phi: vec![0.0; model.n_dof()],
