@@ -5,7 +5,7 @@ use faer::Side;
 use faer::sparse::linalg::cholesky::{
     SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky,
 };
-use faer::sparse::{SparseColMat, SymbolicSparseColMat, Triplet};
+use faer::sparse::{SparseColMat, SymbolicSparseColMat, SymbolicSparseColMatRef, Triplet};
 use faer::{MatMut, MatRef};
 
 /// Sparse matrix in CSC form with `usize` indices.
@@ -315,31 +315,25 @@ impl UnionPattern {
     pub fn new(n: usize, mats: &[&Csc]) -> Self {
         use rayon::prelude::*;
         // Column by column: the rows of every matrix and the diagonal (kept so a row and
-        // column can always be pinned to the identity), sorted and deduplicated. Blocks of
-        // columns on the worker threads (a 100,000-DOF solid's matrices hold 15 million
-        // entries), joined in order.
+        // column can always be pinned to the identity), merged (each column's rows are
+        // sorted). Blocks of columns on the worker threads (a 100,000-DOF solid's matrices
+        // hold 15 million entries), joined in order.
         let blocks = column_blocks(n);
         let parts: Vec<(Vec<usize>, Vec<usize>)> = blocks
             .par_windows(2)
             .map(|w| {
                 let mut counts = Vec::with_capacity(w[1] - w[0]);
                 let mut rows = Vec::new();
+                let (mut merged, mut scratch) = (Vec::new(), Vec::new());
                 for j in w[0]..w[1] {
-                    let first = rows.len();
-                    rows.push(j);
+                    merged.clear();
+                    merged.push(j);
                     for m in mats {
-                        rows.extend_from_slice(m.symbolic().row_idx_of_col_raw(j));
+                        merge_sorted(&merged, m.symbolic().row_idx_of_col_raw(j), &mut scratch);
+                        std::mem::swap(&mut merged, &mut scratch);
                     }
-                    rows[first..].sort_unstable();
-                    let mut kept = first;
-                    for r in first..rows.len() {
-                        if r == first || rows[r] != rows[kept - 1] {
-                            rows[kept] = rows[r];
-                            kept += 1;
-                        }
-                    }
-                    rows.truncate(kept);
-                    counts.push(kept - first);
+                    rows.extend_from_slice(&merged);
+                    counts.push(merged.len());
                 }
                 (counts, rows)
             })
@@ -369,9 +363,13 @@ impl UnionPattern {
                     for j in w[0]..w[1] {
                         let rows = ps.row_idx_of_col_raw(j);
                         let base = ps.col_ptr()[j];
+                        // Both sorted: one walk along the union's column.
+                        let mut r = 0;
                         for &i in s.row_idx_of_col_raw(j) {
-                            let pos = rows.binary_search(&i).expect("entry is in the union");
-                            map.push((base + pos) as u32);
+                            while rows[r] != i {
+                                r += 1; // every entry is in the union
+                            }
+                            map.push((base + r) as u32);
                         }
                     }
                     map
@@ -379,12 +377,21 @@ impl UnionPattern {
                 .collect();
             parts.concat()
         };
-        let mut values = vec![0.0; nnz];
         let mut maps = Vec::with_capacity(mats.len());
-        if let Some(first) = mats.first() {
-            for (&pos, &v) in map_of(first).iter().zip(first.val()) {
-                values[pos as usize] = v;
+        let values = match mats.first() {
+            // The first source's pattern is the union (a solid's K0 holds every other
+            // matrix's entries and the diagonal): its values as they are.
+            Some(first) if first.val().len() == nnz => first.val().to_vec(),
+            Some(first) => {
+                let mut values = vec![0.0; nnz];
+                for (&pos, &v) in map_of(first).iter().zip(first.val()) {
+                    values[pos as usize] = v;
+                }
+                values
             }
+            None => vec![0.0; nnz],
+        };
+        if !mats.is_empty() {
             maps.push(Vec::new());
         }
         maps.extend(mats.iter().skip(1).map(|m| map_of(m)));
@@ -395,8 +402,109 @@ impl UnionPattern {
     }
 }
 
+/// From this many DOFs the AMD ordering is computed on the quotient graph
+/// (`amd_by_supervariables`). Below, AMD on the whole graph costs little (~15 ms at
+/// this size) and gives the least fill; the quotient ordering's different rounding also
+/// moved the sparse solver's eigenvectors on the 2,232-DOF two-bay solid from 0.9e-8 to
+/// 1.2e-8 of the dense solver's, past that test's 1e-8.
+pub const QUOTIENT_ORDERING_FROM_DOF: usize = 10_000;
+
+/// The AMD ordering of a symmetric pattern (both triangles stored), as `(fwd, inv)`: the
+/// ordering alone (faer's symbolic factorization with `Amd` would also analyse the
+/// unpermuted pattern's factor, and throw it away).
+fn amd_on_the_whole_graph(
+    pattern: SymbolicSparseColMatRef<'_, usize>,
+) -> Result<(Vec<usize>, Vec<usize>), faer::sparse::FaerError> {
+    use faer::dyn_stack::{MemBuffer, MemStack};
+    use faer::sparse::linalg::amd;
+    let n = pattern.nrows();
+    let (mut fwd, mut inv) = (vec![0usize; n], vec![0usize; n]);
+    let nnz = pattern.row_idx().len();
+    let mut mem = MemBuffer::try_new(amd::order_maybe_unsorted_scratch::<usize>(n, nnz))
+        .map_err(|_| faer::sparse::FaerError::OutOfMemory)?;
+    amd::order_maybe_unsorted(
+        &mut fwd,
+        &mut inv,
+        pattern,
+        amd::Control::default(),
+        MemStack::new(&mut mem),
+    )?;
+    Ok((fwd, inv))
+}
+
+/// The AMD ordering of a symmetric pattern (both triangles stored, rows sorted), as
+/// `(fwd, inv)`: computed on its quotient graph, where each run of consecutive columns with
+/// the same rows is one node (a node's three translations in a solid mesh; such columns
+/// are indistinguishable, each holding the others), then expanded, each run kept together
+/// in its order. On the four-bay solid frame: 50 → 11 ms, for a factor 4.5 % larger (3.95
+/// against 3.78 million entries; the whole `modes` run is faster by 40 ms).
+fn amd_by_supervariables(
+    pattern: SymbolicSparseColMatRef<'_, usize>,
+) -> Result<(Vec<usize>, Vec<usize>), faer::sparse::FaerError> {
+    use faer::dyn_stack::{MemBuffer, MemStack};
+    use faer::sparse::linalg::amd;
+    let n = pattern.nrows();
+    let mut run_start = Vec::with_capacity(n + 1);
+    let mut run_of = Vec::with_capacity(n);
+    for j in 0..n {
+        if j == 0 || pattern.row_idx_of_col_raw(j) != pattern.row_idx_of_col_raw(j - 1) {
+            run_start.push(j);
+        }
+        run_of.push(run_start.len() - 1);
+    }
+    let runs = run_start.len();
+    run_start.push(n);
+    // The quotient pattern: each run's rows, by run.
+    let mut q_ptr = Vec::with_capacity(runs + 1);
+    let mut q_rows: Vec<usize> = Vec::new();
+    q_ptr.push(0);
+    for &j in &run_start[..runs] {
+        for &i in pattern.row_idx_of_col_raw(j) {
+            let r = run_of[i];
+            if q_rows.len() == *q_ptr.last().expect("starts at 0") || q_rows.last() != Some(&r) {
+                q_rows.push(r);
+            }
+        }
+        q_ptr.push(q_rows.len());
+    }
+    let quotient = SymbolicSparseColMat::new_checked(runs, runs, q_ptr, None, q_rows);
+    let (mut q_fwd, mut q_inv) = (vec![0usize; runs], vec![0usize; runs]);
+    let mut mem = MemBuffer::try_new(amd::order_scratch::<usize>(runs, quotient.row_idx().len()))
+        .map_err(|_| faer::sparse::FaerError::OutOfMemory)?;
+    amd::order(
+        &mut q_fwd,
+        &mut q_inv,
+        quotient.as_ref(),
+        amd::Control::default(),
+        MemStack::new(&mut mem),
+    )?;
+    let fwd: Vec<usize> = q_fwd
+        .iter()
+        .flat_map(|&r| run_start[r]..run_start[r + 1])
+        .collect();
+    let mut inv = vec![0usize; n];
+    for (new, &old) in fwd.iter().enumerate() {
+        inv[old] = new;
+    }
+    Ok((fwd, inv))
+}
+
+/// `out` ← the sorted union of the sorted, duplicate-free `a` and `b`.
+fn merge_sorted(a: &[usize], b: &[usize], out: &mut Vec<usize>) {
+    out.clear();
+    let (mut x, mut y) = (0, 0);
+    while x < a.len() && y < b.len() {
+        let (u, v) = (a[x], b[y]);
+        out.push(u.min(v));
+        x += usize::from(u <= v);
+        y += usize::from(v <= u);
+    }
+    out.extend_from_slice(&a[x..]);
+    out.extend_from_slice(&b[y..]);
+}
+
 /// Column blocks for the worker threads: boundaries from 0 to `n`, a few blocks per thread.
-fn column_blocks(n: usize) -> Vec<usize> {
+pub(super) fn column_blocks(n: usize) -> Vec<usize> {
     let blocks = if n < 4096 {
         1
     } else {
@@ -491,71 +599,64 @@ impl Reordered {
     pub fn new(union: &UnionPattern) -> Result<Self, faer::sparse::FaerError> {
         let pattern = union.pattern.symbolic();
         let n = pattern.nrows();
-        let amd = factorize_symbolic_cholesky(
-            pattern,
-            Side::Lower,
-            SymmetricOrdering::Amd,
-            Default::default(),
-        )?;
-        let (fwd, inv) = match amd.perm() {
-            Some(perm) => {
-                let (fwd, inv) = perm.arrays();
-                (fwd.to_vec(), inv.to_vec())
-            }
-            None => ((0..n).collect(), (0..n).collect()),
+        let (fwd, inv) = if n < QUOTIENT_ORDERING_FROM_DOF {
+            amd_on_the_whole_graph(pattern)?
+        } else {
+            amd_by_supervariables(pattern)?
         };
-        // The lower triangle of P A Pᵀ, by columns, each entry with its union position:
-        // counted, placed and sorted within each column in flat arrays (one allocation,
-        // not one per column: 0.25 → 0.1 s on a 100,000-DOF solid).
+        // The lower triangle of P A Pᵀ, by columns, each entry with its union position. Its
+        // entries are first placed by rows (the upper triangle's columns, in any order),
+        // then read back row by row into their columns, which so come out sorted (two
+        // counting passes, no sort: 50 → 20 ms on the four-bay solid frame).
         let in_lower = |i: usize, j: usize| inv[i] >= inv[j];
+        let mut row_ptr = vec![0usize; n + 1];
         let mut col_ptr = vec![0usize; n + 1];
         for j in 0..n {
             for &i in pattern.row_idx_of_col_raw(j) {
                 if in_lower(i, j) {
+                    row_ptr[inv[i] + 1] += 1;
                     col_ptr[inv[j] + 1] += 1;
                 }
             }
         }
         for j in 0..n {
+            row_ptr[j + 1] += row_ptr[j];
             col_ptr[j + 1] += col_ptr[j];
         }
-        let mut next = col_ptr.clone();
-        let mut entries = vec![(0usize, 0usize); col_ptr[n]];
+        let nnz_lower = col_ptr[n];
+        // (new column, union position) of every lower entry, grouped by new row.
+        let mut by_row = vec![(0u32, 0u32); nnz_lower];
+        let mut next = row_ptr.clone();
         for j in 0..n {
             let base = pattern.col_ptr()[j];
             for (k, &i) in pattern.row_idx_of_col_raw(j).iter().enumerate() {
                 if in_lower(i, j) {
-                    entries[next[inv[j]]] = (inv[i], base + k);
-                    next[inv[j]] += 1;
+                    by_row[next[inv[i]]] = (inv[j] as u32, (base + k) as u32);
+                    next[inv[i]] += 1;
                 }
             }
         }
         let mut below = vec![MIRROR; pattern.row_idx().len()];
-        let mut row_idx = Vec::with_capacity(entries.len());
-        for c in 0..n {
-            let col = &mut entries[col_ptr[c]..col_ptr[c + 1]];
-            col.sort_unstable();
-            for &(row, pos) in col.iter() {
-                below[pos] = row_idx.len() as u32;
-                row_idx.push(row);
+        let mut row_idx = vec![0usize; nnz_lower];
+        let mut fill = col_ptr.clone();
+        for r in 0..n {
+            for &(c, pos) in &by_row[row_ptr[r]..row_ptr[r + 1]] {
+                let c = c as usize;
+                row_idx[fill[c]] = r;
+                below[pos as usize] = fill[c] as u32;
+                fill[c] += 1;
             }
         }
-        drop(entries);
+        drop(by_row);
         // faer reads an identity-ordered pattern as its upper triangle: the transpose
         // (columns read in order, so each of its columns comes out sorted).
-        let mut upper_ptr = vec![0usize; n + 1];
-        for &i in &row_idx {
-            upper_ptr[i + 1] += 1;
-        }
-        for j in 0..n {
-            upper_ptr[j + 1] += upper_ptr[j];
-        }
+        let upper_ptr = row_ptr;
         let mut fill = upper_ptr.clone();
-        let mut upper_idx = vec![0usize; row_idx.len()];
+        let mut upper_idx = vec![0usize; nnz_lower];
         for c in 0..n {
-            for &i in &row_idx[col_ptr[c]..col_ptr[c + 1]] {
-                upper_idx[fill[i]] = c;
-                fill[i] += 1;
+            for &r in &row_idx[col_ptr[c]..col_ptr[c + 1]] {
+                upper_idx[fill[r]] = c;
+                fill[r] += 1;
             }
         }
         let upper = SymbolicSparseColMat::new_checked(n, n, upper_ptr, None, upper_idx);
@@ -767,5 +868,62 @@ mod tests {
         r.permute(&x, &mut xp);
         r.unpermute(&xp, &mut back);
         assert_eq!(back, x);
+    }
+
+    /// A 3-D grid of nodes with three DOFs each, every node coupled to its 26 neighbours
+    /// (a solid mesh's pattern): the quotient-graph ordering is a permutation that keeps
+    /// each node's DOFs together, and its Cholesky factor is within 10 % of the one from
+    /// AMD on the whole graph (the four-bay frame: 4.5 %).
+    #[test]
+    fn the_quotient_ordering_keeps_nodes_together_at_little_extra_fill() {
+        let (nx, ny, nz) = (12, 10, 6);
+        let node = |x: usize, y: usize, z: usize| (z * ny + y) * nx + x;
+        let n = 3 * nx * ny * nz;
+        let mut col_ptr = vec![0];
+        let mut row_idx = Vec::new();
+        for z in 0..nz {
+            for y in 0..ny {
+                for x in 0..nx {
+                    let mut rows = Vec::new();
+                    for (zz, yy, xx) in (z.saturating_sub(1)..(z + 2).min(nz)).flat_map(|zz| {
+                        (y.saturating_sub(1)..(y + 2).min(ny)).flat_map(move |yy| {
+                            (x.saturating_sub(1)..(x + 2).min(nx)).map(move |xx| (zz, yy, xx))
+                        })
+                    }) {
+                        rows.extend((0..3).map(|d| 3 * node(xx, yy, zz) + d));
+                    }
+                    rows.sort_unstable();
+                    for _ in 0..3 {
+                        row_idx.extend_from_slice(&rows);
+                        col_ptr.push(row_idx.len());
+                    }
+                }
+            }
+        }
+        let pattern = SymbolicSparseColMat::new_checked(n, n, col_ptr, None, row_idx);
+        let (fwd, inv) = amd_by_supervariables(pattern.as_ref()).unwrap();
+        for (new, &old) in fwd.iter().enumerate() {
+            assert_eq!(inv[old], new);
+        }
+        for k in (0..n).step_by(3) {
+            assert_eq!(fwd[k] % 3, 0, "a node's first DOF opens each triple");
+            assert_eq!((fwd[k + 1], fwd[k + 2]), (fwd[k] + 1, fwd[k] + 2));
+        }
+        let fill = |perm: Option<(Vec<usize>, Vec<usize>)>| {
+            let ordering = match &perm {
+                Some((f, i)) => {
+                    SymmetricOrdering::Custom(faer::perm::PermRef::new_checked(f, i, n))
+                }
+                None => SymmetricOrdering::Amd,
+            };
+            factorize_symbolic_cholesky(pattern.as_ref(), Side::Lower, ordering, Default::default())
+                .unwrap()
+                .len_val()
+        };
+        let (quotient, whole) = (fill(Some((fwd, inv))), fill(None));
+        assert!(
+            (quotient as f64) < 1.1 * whole as f64,
+            "factor entries: quotient ordering {quotient}, whole graph {whole}"
+        );
     }
 }
