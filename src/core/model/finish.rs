@@ -34,7 +34,7 @@ pub(super) fn check_non_negative(field: String, v: f64) -> Result<(), ModelError
 /// `a` with its upper triangle replaced by the mirror of its lower one (its own arrays,
 /// mended in place, when its pattern is structurally symmetric, as every assembled pattern
 /// is; a new matrix from the lower triangle otherwise).
-fn symmetric_from_lower(a: Csc) -> Csc {
+pub(super) fn symmetric_from_lower(a: Csc) -> Csc {
     let n = a.ncols();
     let mut a = a;
     let (sym, val) = a.parts_mut();
@@ -84,9 +84,37 @@ pub(super) fn mirror_lower(col_ptr: &[usize], row_idx: &[usize], vals: &mut [&mu
     (0..n).all(|i| cursor[i] == col_ptr[i + 1] || row_idx[cursor[i]] >= i)
 }
 
-/// The common end of every assembly: takes `K0`, the `K_l` and `M` (in that order), finds
-/// the DOFs without mass ([`massless_dofs`]) and forms the union pattern.
+/// The common end of every assembly: takes `K0`, the `K_l` and `M` (in that order), makes
+/// them symmetric to the last bit and goes on as [`finish_symmetric`]. The solid elements'
+/// integration leaves roundoff asymmetry (1e-14 of the largest entry), which the
+/// factorizations (one triangle) and the products (both) would see differently, and which
+/// moves the lowest frequencies of the ill-conditioned solid frame by ~1e-9. The lower
+/// triangle is kept.
 pub(super) fn finish(
+    name: &str,
+    labels: Vec<String>,
+    mats: Vec<Csc>,
+    parameters: Vec<Parameter>,
+    connections: Vec<Connection>,
+    channels: Vec<Channel>,
+    bayesian: BayesSpec,
+) -> Result<Model, ModelError> {
+    let mats: Vec<Csc> = mats.into_iter().map(symmetric_from_lower).collect();
+    finish_symmetric(
+        name,
+        labels,
+        mats,
+        parameters,
+        connections,
+        channels,
+        bayesian,
+    )
+}
+
+/// [`finish`] for matrices that are exactly symmetric already (the solid assembly mirrors
+/// its lower triangles itself, and a second pass over the four-bay frame's took 16 ms):
+/// finds the DOFs without mass ([`massless_dofs`]) and forms the union pattern.
+pub(super) fn finish_symmetric(
     name: &str,
     labels: Vec<String>,
     mats: Vec<Csc>,
@@ -104,17 +132,13 @@ pub(super) fn finish(
     }
     let p = parameters.len();
     debug_assert_eq!(mats.len(), p + 2);
-    // Symmetric to the last bit: the solid elements' integration leaves roundoff
-    // asymmetry (1e-14 of the largest entry), which the factorizations (one triangle) and
-    // the products (both) would see differently, and which moves the lowest frequencies of
-    // the ill-conditioned solid frame by ~1e-9. The lower triangle is kept.
-    let mats: Vec<Csc> = mats.into_iter().map(symmetric_from_lower).collect();
     let massless = massless_dofs(&mats, &parameters, &labels)?;
-    let refs: Vec<_> = mats.iter().collect();
-    let union = UnionPattern::new(n, &refs);
-    let mut it = mats.into_iter().skip(1); // K0 is the union's own matrix
+    let mut it = mats.into_iter();
+    let k0 = it.next().expect("K0 is always assembled");
     let k_params: Vec<_> = it.by_ref().take(p).collect();
     let m = it.next().expect("M is always assembled");
+    let others: Vec<&Csc> = k_params.iter().chain([&m]).collect();
+    let union = UnionPattern::with_first(n, k0, &others); // K0 is the union's own matrix
     // The assembly's scratch (twice the matrices on the four-bay frame) back to the
     // system: the allocator would keep it for later allocations of like sizes only.
     crate::release_free_memory();

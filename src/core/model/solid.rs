@@ -340,7 +340,8 @@ pub(super) fn assemble(
         .collect();
     let n_dof = labels.len();
 
-    let (k0, mass) = element_matrices(&parts, &combos, &mat, n_dof)?;
+    let couplings: Vec<(usize, usize)> = springs.iter().map(|&(a, b, _, _)| (a, b)).collect();
+    let (k0, mass) = element_matrices(&parts, &combos, &mat, n_dof, &couplings)?;
     let mut k_params: Vec<Accumulator> = vec![Accumulator::default(); PARAMETERS.len()];
     for &(a, b2, param, k) in &springs {
         k_params[param].add_mapped(&[[k, -k], [-k, k]], &[&[(a, 1.0)], &[(b2, 1.0)]]);
@@ -390,10 +391,15 @@ pub(super) fn assemble(
             kind: ParameterKind::Connections(conn_of_param[l].clone()),
         })
         .collect();
+    // K0 and M are mirrored by `element_matrices`; the springs' few entries here.
     let mut mats = vec![k0];
-    mats.extend(k_params.iter().map(|a| a.build(n_dof)));
+    mats.extend(
+        k_params
+            .iter()
+            .map(|a| super::finish::symmetric_from_lower(a.build(n_dof))),
+    );
     mats.push(mass);
-    super::finish::finish(
+    super::finish::finish_symmetric(
         name,
         labels,
         mats,
@@ -410,11 +416,16 @@ pub(super) fn assemble(
 /// frame those were ~450 MB, most of an update's peak memory, and filling fresh pages
 /// dominated the assembly time). The elements of a box mesh are one box translated, so
 /// each part's element matrices are computed once, from its first element.
+///
+/// The pattern also holds each pair of `couplings` (the springs' DOFs) as explicit zeros,
+/// so that it is the union of the model's patterns and `K0` serves as the union itself
+/// (`UnionPattern::with_first`: no merge and no copy).
 fn element_matrices(
     parts: &[Part],
     combos: &[Combos],
     mat: &Material,
     n: usize,
+    couplings: &[(usize, usize)],
 ) -> Result<(Csc, Csc), ModelError> {
     // Every element's global DOFs, sorted, and the DOF → element incidence.
     let elements: Vec<(usize, [usize; hex20::NODES])> = parts
@@ -456,13 +467,22 @@ fn element_matrices(
     // Column j's rows: every DOF of every element at j. A node's DOFs are numbered in a
     // row and lie in the same elements: a column with the same elements as the one before
     // has its rows (two columns in three on a solid mesh, which saves sorting them).
+    let mut coupled: Vec<Vec<usize>> = vec![Vec::new(); n];
+    for &(a, b) in couplings {
+        coupled[a].push(b);
+        coupled[b].push(a);
+    }
     let mut col_ptr = Vec::with_capacity(n + 1);
     let mut row_idx = Vec::new();
     let mut mark = vec![usize::MAX; n];
     col_ptr.push(0);
     for j in 0..n {
         let first = row_idx.len();
-        if j > 0 && incident[start[j - 1]..start[j]] == incident[start[j]..start[j + 1]] {
+        if j > 0
+            && coupled[j - 1].is_empty()
+            && coupled[j].is_empty()
+            && incident[start[j - 1]..start[j]] == incident[start[j]..start[j + 1]]
+        {
             row_idx.extend_from_within(col_ptr[j - 1]..first);
             col_ptr.push(row_idx.len());
             continue;
@@ -475,10 +495,16 @@ fn element_matrices(
                 }
             }
         }
+        for &i in &coupled[j] {
+            if mark[i] != j {
+                mark[i] = j;
+                row_idx.push(i);
+            }
+        }
         row_idx[first..].sort_unstable();
         col_ptr.push(row_idx.len());
     }
-    drop(mark);
+    drop((mark, coupled));
 
     let per_part: Vec<(Box<hex20::ElementMatrix>, Box<hex20::ElementMatrix>)> = parts
         .iter()
@@ -660,7 +686,13 @@ pub fn solid_cantilever(
             }
         })
         .collect();
-    let (k, m) = element_matrices(std::slice::from_ref(&part), &combos, &mat, labels.len())?;
+    let (k, m) = element_matrices(
+        std::slice::from_ref(&part),
+        &combos,
+        &mat,
+        labels.len(),
+        &[],
+    )?;
     let tip = part
         .mesh
         .node_at([2 * div[0], div[1], 2 * div[2]])
@@ -676,7 +708,7 @@ pub fn solid_cantilever(
             dofs: combos[tip][r].clone(),
         })
         .to_vec();
-    super::finish::finish(
+    super::finish::finish_symmetric(
         "solid-cantilever",
         labels,
         vec![k, m],
