@@ -30,7 +30,7 @@
 //! dropped as dependent, and what is left converges only linearly, by subspace iteration.
 //! Results are deterministic.
 //!
-//! Cost. On a model this size every step is memory-bound: a solve reads the factor (3.8M
+//! Cost. On a model this size every step is memory-bound: a solve reads the factor (3.9M
 //! entries on the four-bay frame) twice, a mass product reads `M`, the orthogonalization
 //! reads the basis. So the solves and mass products take whole blocks
 //! (`spmm_symmetric` reads `M` once per block, split by rows), a block is orthonormalized
