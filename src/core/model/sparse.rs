@@ -453,8 +453,8 @@ fn positions_in(
 }
 
 /// From this many DOFs the AMD ordering is computed on the quotient graph
-/// (`amd_by_supervariables`). Below, AMD on the whole graph costs little (~15 ms at
-/// this size) and gives the least fill; the quotient ordering's different rounding also
+/// (`amd_by_supervariables`). Below, AMD on the whole graph costs little (52 ms at the
+/// four-bay frame's 31,458 DOF, so ~15 ms at this size) and gives the least fill; the quotient ordering's different rounding also
 /// moved the sparse solver's eigenvectors on the 2,232-DOF two-bay solid from 0.9e-8 to
 /// 1.2e-8 of the dense solver's, past that test's 1e-8.
 pub const QUOTIENT_ORDERING_FROM_DOF: usize = 10_000;
@@ -491,8 +491,6 @@ fn amd_on_the_whole_graph(
 fn amd_by_supervariables(
     pattern: SymbolicSparseColMatRef<'_, usize>,
 ) -> Result<(Vec<usize>, Vec<usize>), faer::sparse::FaerError> {
-    use faer::dyn_stack::{MemBuffer, MemStack};
-    use faer::sparse::linalg::amd;
     let n = pattern.nrows();
     let mut run_start = Vec::with_capacity(n + 1);
     let mut run_of = Vec::with_capacity(n);
@@ -518,16 +516,7 @@ fn amd_by_supervariables(
         q_ptr.push(q_rows.len());
     }
     let quotient = SymbolicSparseColMat::new_checked(runs, runs, q_ptr, None, q_rows);
-    let (mut q_fwd, mut q_inv) = (vec![0usize; runs], vec![0usize; runs]);
-    let mut mem = MemBuffer::try_new(amd::order_scratch::<usize>(runs, quotient.row_idx().len()))
-        .map_err(|_| faer::sparse::FaerError::OutOfMemory)?;
-    amd::order(
-        &mut q_fwd,
-        &mut q_inv,
-        quotient.as_ref(),
-        amd::Control::default(),
-        MemStack::new(&mut mem),
-    )?;
+    let (q_fwd, _) = amd_on_the_whole_graph(quotient.as_ref())?;
     let fwd: Vec<usize> = q_fwd
         .iter()
         .flat_map(|&r| run_start[r]..run_start[r + 1])
@@ -657,7 +646,8 @@ impl Reordered {
         // The lower triangle of P A Pᵀ, by columns, each entry with its union position. Its
         // entries are first placed by rows (the upper triangle's columns, in any order),
         // then read back row by row into their columns, which so come out sorted (two
-        // counting passes, no sort: 50 → 20 ms on the four-bay solid frame).
+        // counting passes, no sort per column: 50 → 36 ms on the four-bay solid frame,
+        // most of it now the scattered writes).
         let in_lower = |i: usize, j: usize| inv[i] >= inv[j];
         let mut row_ptr = vec![0usize; n + 1];
         let mut col_ptr = vec![0usize; n + 1];
