@@ -97,6 +97,23 @@ pub fn simulated_data(
 
 /// A Python virtual environment `target/<name>` (made once per target directory) in which
 /// `import_check` runs; `packages` are pip-installed into it when it does not.
+/// Runs `program` with `args` to completion as a whole process: its wall time in seconds
+/// and its standard output. Panics, with its standard error, if it fails.
+pub fn run_timed(program: &str, args: &[&str]) -> (f64, Vec<u8>) {
+    let start = std::time::Instant::now();
+    let out = std::process::Command::new(program)
+        .args(args)
+        .output()
+        .unwrap();
+    let secs = start.elapsed().as_secs_f64();
+    assert!(
+        out.status.success(),
+        "{program} {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (secs, out.stdout)
+}
+
 pub fn python_venv(name: &str, import_check: &str, packages: &[&str]) -> std::path::PathBuf {
     use std::process::Command;
     let target = std::env::current_exe()

@@ -176,8 +176,7 @@ fn a_parameter_beyond_what_the_data_resolve_stops_at_its_bound() {
 /// are printed (medians; the README's figures come from release builds), never asserted.
 #[test]
 fn a_scipy_gauss_newton_reaches_the_same_lab_frame_minimum() {
-    use std::process::Command;
-    use std::time::Instant;
+    use super::common::run_timed as run;
     let python = super::common::python_venv(
         "py-scipy-venv",
         "import scipy.sparse.linalg, scipy.io",
@@ -188,17 +187,6 @@ fn a_scipy_gauss_newton_reaches_the_same_lab_frame_minimum() {
     let model = super::common::model_path("lab-frame");
     let bin = env!("CARGO_BIN_EXE_boltwatch");
     let path = |name: &str| dir.join(name).to_str().unwrap().to_string();
-    let run = |program: &str, args: &[&str]| {
-        let start = Instant::now();
-        let out = Command::new(program).args(args).output().unwrap();
-        let secs = start.elapsed().as_secs_f64();
-        assert!(
-            out.status.success(),
-            "{program} {args:?}: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        (secs, out.stdout)
-    };
     run(
         bin,
         &[

@@ -18,8 +18,7 @@ use super::solid::{four_bay, four_bay_text, two_bay_coarse};
     ignore = "slow tier: cargo test --features slow-tests"
 )]
 fn modes_match_scipy_eigsh_on_the_exported_four_bay_matrices() {
-    use std::process::Command;
-    use std::time::Instant;
+    use super::common::run_timed;
     let python = super::common::python_venv(
         "py-scipy-venv",
         "import scipy.sparse.linalg, scipy.io",
@@ -32,34 +31,30 @@ fn modes_match_scipy_eigsh_on_the_exported_four_bay_matrices() {
         "/config/models/four-bay-solid.toml"
     );
     let bin = env!("CARGO_BIN_EXE_boltwatch");
-    let run = |args: &[&str]| {
-        let out = Command::new(bin).args(args).output().unwrap();
-        assert!(
-            out.status.success(),
-            "boltwatch {args:?}: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-    };
     let matrices = dir.join("matrices");
-    run(&[
-        "export-matrices",
-        "--model",
-        model,
-        "-o",
-        matrices.to_str().unwrap(),
-    ]);
+    run_timed(
+        bin,
+        &[
+            "export-matrices",
+            "--model",
+            model,
+            "-o",
+            matrices.to_str().unwrap(),
+        ],
+    );
     let ours_json = dir.join("modes.json");
-    let start = Instant::now();
-    run(&[
-        "modes",
-        "--model",
-        model,
-        "-n",
-        "12",
-        "-o",
-        ours_json.to_str().unwrap(),
-    ]);
-    let ours_s = start.elapsed().as_secs_f64();
+    let (ours_s, _) = run_timed(
+        bin,
+        &[
+            "modes",
+            "--model",
+            model,
+            "-n",
+            "12",
+            "-o",
+            ours_json.to_str().unwrap(),
+        ],
+    );
     let ours: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&ours_json).unwrap()).unwrap();
     let script = r#"
@@ -74,18 +69,11 @@ M = scipy.io.mmread(d + "/M.mtx").tocsc()
 lam = np.sort(sla.eigsh(K, k=12, M=M, sigma=0.0, which="LM", return_eigenvectors=False))
 print(json.dumps((np.sqrt(lam) / (2 * np.pi)).tolist()))
 "#;
-    let start = Instant::now();
-    let out = Command::new(&python)
-        .args(["-c", script, matrices.to_str().unwrap()])
-        .output()
-        .unwrap();
-    let scipy_s = start.elapsed().as_secs_f64();
-    assert!(
-        out.status.success(),
-        "scipy: {}",
-        String::from_utf8_lossy(&out.stderr)
+    let (scipy_s, stdout) = run_timed(
+        python.to_str().unwrap(),
+        &["-c", script, matrices.to_str().unwrap()],
     );
-    let scipy: Vec<f64> = serde_json::from_slice(&out.stdout).unwrap();
+    let scipy: Vec<f64> = serde_json::from_slice(&stdout).unwrap();
     let mut worst: f64 = 0.0;
     for (k, f) in scipy.iter().enumerate() {
         let mine = ours["frequencies_hz"][k].as_f64().unwrap();

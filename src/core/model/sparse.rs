@@ -843,6 +843,22 @@ mod tests {
         }
     }
 
+    /// Triplets of a symmetric `n × n` matrix: `k` off-diagonal pairs placed by `off`, and
+    /// a dominant diagonal.
+    fn symmetric_triplets(n: usize, k: usize, off: usize) -> Vec<(usize, usize, f64)> {
+        (0..k)
+            .map(|t| {
+                (
+                    (t * 4 + off) % n,
+                    (t * 7 + 2 * off) % n,
+                    0.3 * t as f64 - 1.1,
+                )
+            })
+            .flat_map(|(i, j, v)| [(i, j, v), (j, i, v)])
+            .chain((0..n).map(|i| (i, i, 10.0 + i as f64)))
+            .collect()
+    }
+
     /// `UnionPattern::with_first` takes the first matrix as the union when it holds the
     /// others' entries and its diagonal, and builds the union as `new` does otherwise: the
     /// same pattern, values and maps either way, each map pointing at its entry's row and
@@ -850,19 +866,7 @@ mod tests {
     #[test]
     fn a_union_taken_from_its_first_matrix_is_the_merged_union() {
         let n = 9;
-        let sym = |k: usize, off: usize| -> Vec<(usize, usize, f64)> {
-            (0..k)
-                .map(|t| {
-                    (
-                        (t * 4 + off) % n,
-                        (t * 7 + 2 * off) % n,
-                        0.3 * t as f64 - 1.1,
-                    )
-                })
-                .flat_map(|(i, j, v)| [(i, j, v), (j, i, v)])
-                .chain((0..n).map(|i| (i, i, 10.0 + i as f64)))
-                .collect()
-        };
+        let sym = |k, off| symmetric_triplets(n, k, off);
         let a = csc_from_triplets(n, sym(12, 1).into_iter());
         // Inside a's pattern: a's entries of every other column, scaled.
         let inside = csc_from_triplets(
@@ -915,19 +919,7 @@ mod tests {
     #[test]
     fn reordered_lower_triangle_is_the_permuted_matrix() {
         let n = 9;
-        let sym = |k: usize, off: usize| -> Vec<(usize, usize, f64)> {
-            (0..k)
-                .map(|t| {
-                    (
-                        (t * 4 + off) % n,
-                        (t * 7 + 2 * off) % n,
-                        0.3 * t as f64 - 1.1,
-                    )
-                })
-                .flat_map(|(i, j, v)| [(i, j, v), (j, i, v)])
-                .chain((0..n).map(|i| (i, i, 10.0 + i as f64)))
-                .collect()
-        };
+        let sym = |k, off| symmetric_triplets(n, k, off);
         let a = csc_from_triplets(n, sym(12, 1).into_iter());
         let b = csc_from_triplets(n, sym(5, 3).into_iter());
         let union = UnionPattern::new(n, &[&a, &b]);
