@@ -189,6 +189,7 @@ fn stage_one(
     fine: &Model,
     fine_set: &crate::contract::modal_set::ModalSet,
     max_iter: usize,
+    bounds: Option<(f64, f64)>,
 ) -> Result<StageOneOut> {
     let path = b
         .stage1_model
@@ -235,6 +236,7 @@ fn stage_one(
             prior_std,
             max_iterations: max_iter,
             tsvd: false,
+            bounds,
         },
         &mut report,
     )?;
@@ -299,6 +301,7 @@ pub fn run_update(
     b: &BayesUpdateArgs,
     max_iter: Option<usize>,
     shape_weight: f64,
+    bounds: Option<(f64, f64)>,
     out: &Path,
     inputs: &Inputs,
 ) -> Result<()> {
@@ -310,7 +313,7 @@ pub fn run_update(
         SolverArg::Alternating => 1_000_000,
     });
     let stage1 = match &b.stage1_model {
-        Some(_) => Some(stage_one(b, shape_weight, model, set, max_iter)?),
+        Some(_) => Some(stage_one(b, shape_weight, model, set, max_iter, bounds)?),
         None => None,
     };
     let theta0 = stage1
@@ -359,6 +362,7 @@ pub fn run_update(
             prior_std: std.clone(),
             max_iterations: max_iter,
             tsvd: !b.no_tsvd,
+            bounds,
         },
         Observers {
             sigma_trial: &mut report,

@@ -83,6 +83,7 @@ pub fn run_sweep(args: &SweepArgs) -> Result<()> {
         theta0,
         newton_max_iterations: 200,
         alternating_max_iterations: args.alternating_max_iter,
+        bounds: None,
     };
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;

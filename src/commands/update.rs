@@ -10,13 +10,18 @@ use super::progress::{fmt_theta, iteration_progress, progress_line};
 use super::write_json;
 use crate::contract::modal_set::ModalSet;
 use crate::contract::stiffness::Method as WireMethod;
-use crate::contract::update::{Bound, ModeMatchingDoc, ModeResult, ParameterResult};
+use crate::contract::update::{
+    Bound, FirstOrderDoc, GroupDoc, MinimumDoc, ModeMatchingDoc, ModeResult, ParameterResult,
+    SearchDoc, WeightsDoc,
+};
 use crate::contract::{ModeComparison, Schema, finite};
 use crate::core::model::Model;
 use crate::core::stats::chi2_bound;
+use crate::core::updating::search::{SearchOptions, SearchResult, global_search};
+use crate::core::updating::variance::{MAX_OUTER, Rescaled};
 use crate::core::updating::{
-    AtBound, Evaluator, FinalStep, ModeMatching, ModeMatchingOptions, StartPath, StepControl,
-    Weighting,
+    AtBound, Evaluator, FinalStep, ModeMatching, ModeMatchingOptions, ModeMatchingResult, Pairing,
+    StepControl, Termination, Weighting,
 };
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -26,6 +31,24 @@ pub enum Method {
     /// Bayesian MAP without mode matching, paper §2.3 (objective (14)).
     Bayesian,
 }
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum PairingArg {
+    /// The candidate that adds least to ε.
+    Misfit,
+    /// The candidate of highest MAC, paper (29).
+    Mac,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum WeightsArg {
+    Auto,
+    Stated,
+    Rescaled,
+}
+
+/// Starts of the automatic global search.
+pub const AUTO_STARTS: usize = 32;
 
 #[derive(Debug, clap::Args)]
 pub struct UpdateArgs {
@@ -53,13 +76,35 @@ pub struct UpdateArgs {
     /// not creep on for dozens of iterations.
     #[arg(long)]
     pub eps_tol: Option<f64>,
-    /// Mode matching: keep every θ_i within `lo,hi` times its nominal value, or `none`. A
+    /// Keep every θ_i within `lo,hi` times its nominal value, or `none` (both methods; the
+    /// model's own bounds hold as well). A
     /// parameter the data cannot pin down then stops at a bound (reported as such: the
     /// data only say it is beyond it) instead of running off while the fit stalls. The
     /// bounds hold the Levenberg–Marquardt steps; with `--kappa` (the paper's fixed-step
     /// Gauss–Newton, reproduced as published) they only clamp θ0.
     #[arg(long, default_value = "1e-3,1e3")]
     pub bounds: String,
+    /// Mode matching: search the bounds globally from this many space-filling starts
+    /// (screened, the best polished, on every core). Without it the search runs with
+    /// 32 starts when the fit from θ0 is not converged, ends above its χ² bound or has a
+    /// parameter at a bound.
+    #[arg(long)]
+    pub starts: Option<usize>,
+    /// Seed of the global search's starts (the same seed, the same starts and result).
+    #[arg(long, default_value_t = 1)]
+    pub seed: u32,
+    /// Mode matching: no global search, whatever the fit from θ0.
+    #[arg(long, conflicts_with = "starts")]
+    pub no_search: bool,
+    /// Mode matching: pair measured with model modes by least misfit (the default: ε is
+    /// continuous through crossing and veering modes) or by highest MAC, paper (29).
+    #[arg(long, value_enum, default_value_t = PairingArg::Misfit)]
+    pub pairing: PairingArg,
+    /// Mode matching: weight by the stated σ, or by σ rescaled per data group (the
+    /// eigenvalues; each mode's shape) to what the data support. `auto`: rescaled when the
+    /// fit under the stated σ ends above its χ² bound.
+    #[arg(long, value_enum, default_value_t = WeightsArg::Auto)]
+    pub weights: WeightsArg,
     /// Maximum iterations (default: 200; 10⁶ for `--solver alternating`).
     #[arg(long)]
     pub max_iter: Option<usize>,
@@ -86,6 +131,7 @@ pub fn run(args: &UpdateArgs) -> Result<()> {
             &args.bayes,
             args.max_iter,
             args.shape_weight,
+            parse_bounds(&args.bounds)?,
             &args.out,
             &inputs,
         ),
@@ -130,18 +176,62 @@ fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
             ),
         );
     }));
-    // The paper's fixed-κ Gauss–Newton runs as published; the default is globalized.
-    let (res, path) = match opts.step {
-        StepControl::FixedKappa(_) => (mm.run(model, data, theta0, &opts)?, StartPath::Given),
-        StepControl::LevenbergMarquardt => mm.run_global(model, data, theta0, &opts)?,
-    };
+    mm.evaluator.set_pairing(match args.pairing {
+        PairingArg::Misfit => Pairing::Misfit,
+        PairingArg::Mac => Pairing::Mac,
+    });
+    let first = mm.run(model, data, theta0, &opts)?;
     pb.finish_and_clear();
-    let start = match path {
-        StartPath::Given => "theta0".to_string(),
-        StartPath::Restart { value } => {
-            format!("restart from uniform θ = {value} (the run from θ0 ended in a local minimum)")
+    let bound = chi2_bound(data.n_data(), model.n_params());
+    let kappa = matches!(opts.step, StepControl::FixedKappa(_));
+    let rescale = match args.weights {
+        _ if kappa => None,
+        WeightsArg::Stated => None,
+        WeightsArg::Rescaled => Some("requested".to_string()),
+        WeightsArg::Auto => (first.epsilon() > bound).then(|| {
+            format!(
+                "under the stated σ the fit ends at ε = {:.1}, above its χ² bound {bound:.1}: \
+                 the σ of each mode's shape that misfits beyond them are scaled to its misfit \
+                 (the frequencies keep theirs)",
+                first.epsilon()
+            )
+        }),
+    };
+    let reason = match args.starts {
+        _ if kappa => None,
+        Some(0) => anyhow::bail!("--starts 0: need at least 1 start"),
+        Some(n) => Some((n, format!("{n} starts requested"))),
+        None if args.no_search => None,
+        None => search_reason(&first, bound).map(|r| (AUTO_STARTS, r)),
+    };
+    let ones = vec![1.0; data.n_groups()];
+    let pairing = mm.evaluator.pairing();
+    let local = match &rescale {
+        Some(_) => mm.run_rescaled(model, data, &first.theta, &ones, &opts, MAX_OUTER)?,
+        None => Rescaled::stated(data, first.clone()),
+    };
+    let (fit, start, search) = match reason {
+        None => (local, "theta0".to_string(), None),
+        Some((n, why)) => {
+            eprintln!("global search: {n} starts (seed {}): {why}", args.seed);
+            let options = SearchOptions {
+                rescale: rescale.is_some(),
+                pairing,
+                ..SearchOptions::new(n, args.seed)
+            };
+            let found = global_search(model, data, &opts, &options, Some(local))?;
+            let best = found.best();
+            let start = match best.reached_from.iter().find_map(|s| *s) {
+                Some(k) if !best.reached_from.contains(&None) => {
+                    format!("global search: start {} of {n} (seed {})", k + 1, args.seed)
+                }
+                _ => "theta0".to_string(),
+            };
+            (best.fit.clone(), start, Some(search_doc(&found, set, why)))
         }
     };
+    let res = fit.result.clone();
+    let stated_epsilon = fit.stated_epsilon;
     let std = res.std();
     let out = ModeMatchingDoc {
         schema: Schema::new(),
@@ -156,7 +246,7 @@ fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
         evaluations: res.evaluations,
         start: start.clone(),
         chi2_bound: chi2_bound(data.n_data(), model.n_params()),
-        epsilon: res.epsilon(),
+        epsilon: stated_epsilon,
         n_data: data.n_data(),
         weighting: match data.weighting {
             Weighting::Covariance => "covariance (8)",
@@ -183,11 +273,164 @@ fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
             .enumerate()
             .map(|(m, mode)| ModeResult::new(ModeComparison::of(&res.last, m, mode.frequency_hz)))
             .collect(),
+        stop_reason: stop_reason(&res),
+        first_order: Some(FirstOrderDoc {
+            projected_gradient: res.first_order.projected_gradient,
+            decrement: finite(res.first_order.decrement),
+        }),
+        pairing: match args.pairing {
+            PairingArg::Misfit => "misfit",
+            PairingArg::Mac => "mac",
+        }
+        .into(),
+        search,
+        above_bound: above_bound(stated_epsilon, bound),
+        weights: Some(weights_doc(&fit, rescale)),
     };
     write_json(&args.out, &out)?;
     print_table(model, set, &res, &std);
+    if let Some(w) = &out.weights {
+        print_weights(w, stated_epsilon, bound);
+    }
     println!("found from: {start}");
+    if let Some(s) = &out.search {
+        print_minima(s);
+    }
+    println!("{}", out.stop_reason);
+    if let Some(note) = &out.above_bound {
+        println!("{note}");
+    }
     Ok(())
+}
+
+/// The weighting of the result: the groups with their stated misfits and factors.
+fn weights_doc(fit: &Rescaled, reason: Option<String>) -> WeightsDoc {
+    WeightsDoc {
+        rule: if reason.is_some() {
+            "rescaled"
+        } else {
+            "stated"
+        }
+        .into(),
+        epsilon_rescaled: reason.as_ref().map(|_| fit.result.epsilon()),
+        reason,
+        objective: fit.objective,
+        groups: (fit.groups.iter())
+            .map(|g| GroupDoc {
+                name: g.name.clone(),
+                n: g.n,
+                misfit: g.misfit,
+                scale: fit.scales[g.group],
+            })
+            .collect(),
+    }
+}
+
+/// Why the fit from θ0 calls for a global search, if it does.
+fn search_reason(first: &ModeMatchingResult, bound: f64) -> Option<String> {
+    if !first.converged() {
+        Some(format!("the fit from θ0 stopped ({:?})", first.termination))
+    } else if first.epsilon() > bound {
+        Some(format!(
+            "the fit from θ0 ended at ε = {:.1}, above its χ² bound {bound:.1}",
+            first.epsilon()
+        ))
+    } else if first.at_bound.iter().any(Option::is_some) {
+        Some("the fit from θ0 ended with a parameter at a bound".into())
+    } else {
+        None
+    }
+}
+
+/// The search's minima for the result document.
+fn search_doc(found: &SearchResult, set: &ModalSet, reason: String) -> SearchDoc {
+    SearchDoc {
+        reason,
+        starts: found.options.starts,
+        seed: found.options.seed,
+        polished: found.options.polish,
+        chosen: 0,
+        minima: found
+            .minima
+            .iter()
+            .map(|m| MinimumDoc {
+                theta: m.fit.result.theta.clone(),
+                epsilon: m.fit.stated_epsilon,
+                objective: m.fit.objective,
+                converged: m.fit.result.converged(),
+                frequency_errors: (set.modes.iter().enumerate())
+                    .map(|(k, mode)| {
+                        (m.fit.result.last.model_hz(k) - mode.frequency_hz) / mode.frequency_hz
+                    })
+                    .collect(),
+                mac: m.fit.result.last.mac.iter().map(|&v| finite(v)).collect(),
+                starts: m.reached_from.iter().filter(|s| s.is_some()).count(),
+                from_theta0: m.reached_from.contains(&None),
+            })
+            .collect(),
+    }
+}
+
+/// Why the iteration stopped, in words.
+fn stop_reason(res: &ModeMatchingResult) -> String {
+    let fo = &res.first_order;
+    match &res.termination {
+        Termination::Converged => format!(
+            "converged: the bounded first-order conditions hold (projected gradient of ε \
+             {:.2e}, Gauss–Newton decrement {:.2e})",
+            fo.projected_gradient, fo.decrement
+        ),
+        Termination::Stalled => format!(
+            "stalled: no damped step lowers ε, yet this is not a first-order point (projected \
+             gradient of ε {:.3}; the linear model still promises a decrease of {:.3})",
+            fo.projected_gradient, fo.decrement
+        ),
+        Termination::MaxIterations => format!(
+            "stopped at the iteration limit (projected gradient of ε {:.3})",
+            fo.projected_gradient
+        ),
+        Termination::Diverged(why) => format!("diverged: {why}"),
+    }
+}
+
+/// The note when the best fit is above its χ² bound.
+fn above_bound(epsilon: f64, bound: f64) -> Option<String> {
+    (epsilon > bound).then(|| {
+        format!(
+            "the best fit is above its χ² bound (ε = {epsilon:.1} against {bound:.1}, {:.1}×): \
+             the stated uncertainties are too small or the model lacks an effect; \
+             `boltwatch diagnose` looks for the missing effect",
+            epsilon / bound
+        )
+    })
+}
+
+fn print_minima(s: &SearchDoc) {
+    println!();
+    println!(
+        "global search ({}; {} starts, seed {}, {} polished): {} distinct minima",
+        s.reason,
+        s.starts,
+        s.seed,
+        s.polished,
+        s.minima.len()
+    );
+    for (i, m) in s.minima.iter().enumerate() {
+        let errs: Vec<String> = m
+            .frequency_errors
+            .iter()
+            .map(|e| format!("{:+.2}", 100.0 * e))
+            .collect();
+        println!(
+            "{} J = {:<12.4} ε = {:<12.4} starts {:>3}{}  frequency errors % [{}]",
+            if i == s.chosen { "*" } else { " " },
+            m.objective,
+            m.epsilon,
+            m.starts,
+            if m.from_theta0 { " + θ0" } else { "" },
+            errs.join(", ")
+        );
+    }
 }
 
 /// `--bounds`: `lo,hi` or `none`.
@@ -245,10 +488,21 @@ fn print_table(
     }
     println!();
     println!(
-        "{:?} after {} iterations ({} evaluations); ε = {:.4}",
-        res.termination,
-        res.iterations,
-        res.evaluations,
-        res.epsilon()
+        "{:?} after {} iterations ({} evaluations)",
+        res.termination, res.iterations, res.evaluations,
     );
+}
+
+/// ε under the stated σ against its bound, and the group factors when the σ were rescaled.
+fn print_weights(w: &WeightsDoc, epsilon: f64, bound: f64) {
+    println!("ε = {epsilon:.4} under the stated σ (χ² bound {bound:.1})");
+    if let (Some(reason), Some(e)) = (&w.reason, w.epsilon_rescaled) {
+        println!("σ rescaled per data group ({reason}); ε = {e:.4} under the rescaled σ:");
+        for g in &w.groups {
+            println!(
+                "  {:<20} {:>4} entries  misfit {:>12.2}  σ × {:.3}",
+                g.name, g.n, g.misfit, g.scale
+            );
+        }
+    }
 }

@@ -29,6 +29,89 @@ pub struct ModeMatchingDoc {
     pub weighting: String,
     pub parameters: Vec<ParameterResult>,
     pub modes: Vec<ModeResult>,
+    /// Why the iteration stopped, in words (added to v1: absent from older results).
+    #[serde(default)]
+    pub stop_reason: String,
+    /// The first-order (KKT) conditions of the bounded problem at the result.
+    #[serde(default)]
+    pub first_order: Option<FirstOrderDoc>,
+    /// How measured modes were paired: `misfit` or `mac` (29).
+    #[serde(default)]
+    pub pairing: String,
+    /// The global search, when one ran.
+    #[serde(default)]
+    pub search: Option<SearchDoc>,
+    /// Set when the best fit is still above its χ² bound: what that means and what to do.
+    #[serde(default)]
+    pub above_bound: Option<String>,
+    /// The weighting the fit used: the stated σ, or σ rescaled per data group.
+    #[serde(default)]
+    pub weights: Option<WeightsDoc>,
+}
+
+/// How the data were weighted in the fit (`epsilon` above is always under the stated σ).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct WeightsDoc {
+    /// `stated` or `rescaled`.
+    pub rule: String,
+    /// Why the σ were rescaled, when they were.
+    pub reason: Option<String>,
+    /// ε under the rescaled σ.
+    pub epsilon_rescaled: Option<f64>,
+    /// What the fit minimized and minima are compared by: ε under the stated σ, or
+    /// `J_w = Σ_g ε_g/s_g² + n_g ln s_g²` (minus twice the log-likelihood at the factors).
+    pub objective: f64,
+    pub groups: Vec<GroupDoc>,
+}
+
+/// One data group: its misfit under the stated σ and the factor its σ were multiplied by.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GroupDoc {
+    pub name: String,
+    pub n: usize,
+    pub misfit: f64,
+    pub scale: f64,
+}
+
+/// The first-order conditions at the result.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FirstOrderDoc {
+    /// The largest `|∂ε/∂ln θ_i|` over the parameters free to move (projected gradient).
+    pub projected_gradient: f64,
+    /// The decrease of ε the Gauss–Newton model still promises.
+    pub decrement: Option<f64>,
+}
+
+/// A global search over the bounds: its design and the distinct minima it found.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SearchDoc {
+    /// Why it ran.
+    pub reason: String,
+    pub starts: usize,
+    pub seed: u32,
+    /// Starts polished to convergence after screening.
+    pub polished: usize,
+    /// Index into `minima` of the one returned.
+    pub chosen: usize,
+    pub minima: Vec<MinimumDoc>,
+}
+
+/// One distinct minimum of a global search.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MinimumDoc {
+    pub theta: Vec<f64>,
+    /// ε under the stated σ.
+    pub epsilon: f64,
+    /// What the minima are ranked by: ε, or `J_w` with rescaled σ.
+    pub objective: f64,
+    pub converged: bool,
+    /// (model − measured)/measured frequency per measured mode.
+    pub frequency_errors: Vec<f64>,
+    pub mac: Vec<Option<f64>>,
+    /// How many polished starts ended here.
+    pub starts: usize,
+    /// Whether the run from θ0 ended here.
+    pub from_theta0: bool,
 }
 
 impl Message for ModeMatchingDoc {

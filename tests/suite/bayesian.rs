@@ -485,6 +485,7 @@ fn automatic_sigma_c_meets_the_discrepancy_rule_in_few_solves() {
         theta0: vec![1.0],
         newton_max_iterations: 200,
         alternating_max_iterations: None,
+        bounds: None,
     };
     let (from, to) = (1e-2, 1e6);
     let auto = AutoSigma::search(

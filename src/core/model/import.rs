@@ -96,7 +96,8 @@ struct ParameterEntry {
     /// θ_l of the model as given (default 1).
     #[serde(default = "one")]
     nominal: f64,
-    /// Bounds of θ_l that `update` (mode matching) and the tracker keep it within.
+    /// Bounds of θ_l that `update` (both methods) and the tracker keep it within. A lower
+    /// bound of 0 means no limit but positivity (θ > 0 is kept by the log parameterization).
     #[serde(default)]
     lower: Option<f64>,
     #[serde(default)]
@@ -201,14 +202,14 @@ pub fn read_matrices(json: &Path) -> Result<Model, ImportError> {
         }
         let lower_ok = p
             .lower
-            .is_none_or(|v| v.is_finite() && v > 0.0 && v <= p.nominal);
+            .is_none_or(|v| v.is_finite() && v >= 0.0 && v <= p.nominal);
         let upper_ok = p.upper.is_none_or(|v| v.is_finite() && v >= p.nominal);
         let apart = !matches!((p.lower, p.upper), (Some(a), Some(b)) if a >= b);
         if !(lower_ok && upper_ok && apart) {
             return Err(err(
                 json,
                 format!(
-                    "parameters.{}: need 0 < lower ≤ nominal ≤ upper < ∞ and lower < upper, got lower \
+                    "parameters.{}: need 0 ≤ lower ≤ nominal ≤ upper < ∞ and lower < upper, got lower \
                      {}, nominal {}, upper {}",
                     p.name,
                     p.lower.map_or("none".into(), |v| v.to_string()),

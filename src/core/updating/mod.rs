@@ -2,18 +2,22 @@
 //! Bayesian MAP (10)–(14), (16), (21)–(23).
 
 pub mod bayesian;
+pub mod bounds;
 pub mod data;
 pub mod globalize;
 pub mod mode_matching;
 pub mod residual;
+pub mod search;
+pub mod variance;
 
+pub use bounds::LogBounds;
 pub use data::{MeasuredData, RawMode, TargetMode, TargetShape, Weighting};
 pub use globalize::{RESTART_STARTS, StartPath};
 pub use mode_matching::{
-    AtBound, FinalStep, ModeMatching, ModeMatchingOptions, ModeMatchingResult, StepControl,
-    Termination,
+    AtBound, FinalStep, FirstOrder, ModeMatching, ModeMatchingOptions, ModeMatchingResult,
+    StepControl, Termination,
 };
-pub use residual::{Evaluation, Evaluator};
+pub use residual::{Evaluation, Evaluator, Pairing};
 
 use crate::core::modal::ModalError;
 

@@ -15,6 +15,7 @@ use faer::linalg::solvers::{Llt, Solve};
 use faer::{Mat, Side};
 
 use super::UpdateError;
+use super::bounds::LogBounds;
 use super::data::{MeasuredData, Weighting};
 use super::residual::{Evaluation, Evaluator};
 use crate::core::model::Model;
@@ -157,6 +158,8 @@ pub struct ModeMatchingResult {
     /// Per parameter, the bound it ended at, if any: the data then only say that θ_i is
     /// beyond it (a bound the fit pressed against, not an estimate).
     pub at_bound: Vec<Option<AtBound>>,
+    /// The first-order conditions of the bounded problem at the final evaluation.
+    pub first_order: FirstOrder,
 }
 
 impl ModeMatchingResult {
@@ -253,248 +256,263 @@ impl ModeMatching {
                 reason: "need finite factors 0 < lo < 1 < hi of the nominal θ",
             });
         }
-        let p = model.n_params();
-        // Bounds of u = ln θ (±∞ if unbounded).
-        let (u_lo, u_hi): (Vec<f64>, Vec<f64>) = model
-            .parameters()
-            .iter()
-            .map(|par| {
-                let (lo, hi) = match opts.bounds {
-                    Some((lo, hi)) => (lo * par.nominal, hi * par.nominal),
-                    None => (0.0, f64::INFINITY),
-                };
-                (
-                    par.lower.map_or(lo, |v| v.max(lo)).ln(),
-                    par.upper.map_or(hi, |v| v.min(hi)).ln(),
-                )
-            })
-            .unzip();
-        let theta0: Vec<f64> = (0..p)
-            .map(|i| theta0[i].clamp(u_lo[i].exp(), u_hi[i].exp()))
-            .collect();
-        let theta0 = theta0.as_slice();
-        let mut ev = self.evaluator.evaluate(model, data, theta0)?;
-        let mut evaluations = 1;
-        let mut history = vec![record(&ev)];
-        self.report(0, &history[0]);
-        let mut iterations = 0;
-        let mut mu = 1e-3;
-        let mut nu = 2.0;
-        // Set once releasing a parameter from its bound (descent pointing inwards) failed
-        // to lower ε: from then on every parameter at a bound is held there.
-        let mut hold_bounded = false;
-        // The Jacobian of the last iteration, reused for (15) if θ did not move after it.
-        let mut last_jac: Option<(Vec<f64>, Mat<f64>)> = None;
-        // The Gauss–Newton point of FinalStep::Extrapolate.
-        let mut extrapolated: Option<Vec<f64>> = None;
+        let bounds = LogBounds::new(model, opts.bounds);
+        let theta0 = bounds.clamp(theta0);
+        let ev = self.evaluator.evaluate(model, data, &theta0)?;
+        let mut st = Iterate {
+            history: vec![record(&ev)],
+            ev,
+            evaluations: 1,
+            iterations: 0,
+            mu: 1e-3,
+            nu: 2.0,
+            hold_bounded: false,
+            last_jac: None,
+            extrapolated: None,
+        };
+        self.report(0, &st.history[0].clone());
         let termination = loop {
-            if iterations >= opts.max_iterations {
+            if st.iterations >= opts.max_iterations {
                 break Termination::MaxIterations;
             }
-            let theta = ev.theta.clone();
-            let jac = &last_jac
-                .insert((theta.clone(), self.evaluator.jacobian(model, data, &ev)?))
-                .1;
-            match opts.step {
+            let jac = self.evaluator.jacobian(model, data, &st.ev)?;
+            st.last_jac = Some((st.ev.theta.clone(), jac));
+            let stop = match opts.step {
                 StepControl::FixedKappa(kappa) => {
-                    let Some(step) = gauss_newton_step(jac, &ev.r) else {
-                        break Termination::Diverged("SᵀWS is singular".into());
-                    };
-                    let new: Vec<f64> = (0..p).map(|i| theta[i] + kappa * step[i]).collect();
-                    if let Some(i) = new.iter().position(|v| !(v.is_finite() && *v > 0.0)) {
-                        break Termination::Diverged(format!(
-                            "θ{} = {} after step {}",
-                            i + 1,
-                            new[i],
-                            iterations + 1
-                        ));
-                    }
-                    let done = (0..p).all(|i| (new[i] - theta[i]).abs() / theta[i] < opts.tol);
-                    ev = self.evaluator.evaluate(model, data, &new)?;
-                    evaluations += 1;
-                    iterations += 1;
-                    history.push(record(&ev));
-                    self.report(iterations, history.last().expect("just pushed"));
-                    if done {
-                        break Termination::Converged;
-                    }
+                    self.kappa_step(model, data, kappa, opts, &mut st)?
                 }
                 StepControl::LevenbergMarquardt => {
-                    // In u = ln θ: J_u = J diag(θ).
-                    let mut ju = jac.clone();
-                    for l in 0..p {
-                        for i in 0..ju.nrows() {
-                            ju[(i, l)] *= theta[l];
-                        }
-                    }
-                    let mut a = ju.transpose() * &ju;
-                    let mut g = ju.transpose() * faer::ColRef::from_slice(&ev.r);
-                    // A parameter at a bound that descent would push beyond is held there
-                    // (and, after a failed release, any parameter at a bound): its row
-                    // and column of the normal matrix become the identity's and its
-                    // gradient zero, so every step leaves it.
-                    for i in 0..p {
-                        let u = theta[i].ln();
-                        let held = (u >= u_hi[i] - 1e-12 && (g[i] < 0.0 || hold_bounded))
-                            || (u <= u_lo[i] + 1e-12 && (g[i] > 0.0 || hold_bounded));
-                        if held {
-                            for j in 0..p {
-                                a[(i, j)] = 0.0;
-                                a[(j, i)] = 0.0;
-                            }
-                            a[(i, i)] = 1.0;
-                            g[i] = 0.0;
-                        }
-                    }
-                    // Steps are cut at the bounds.
-                    let clip = |i: usize, d: f64| {
-                        let u = theta[i].ln();
-                        (u + d).clamp(u_lo[i], u_hi[i]) - u
-                    };
-                    // Convergence test on the undamped step (A factored once for the step
-                    // and the standard deviations).
-                    let normal = a.llt(Side::Lower).ok();
-                    if let Some(llt) = &normal
-                        && let Some(gn) = step_from(llt, &g)
-                        && let gn = (0..p).map(|i| clip(i, gn[i])).collect::<Vec<f64>>()
-                        && (gn.iter().all(|d| d.exp_m1().abs() < opts.tol)
-                            || opts
-                                .sigma_tol
-                                .is_some_and(|t| within_std(llt, &gn, t, data, &ev))
-                            || {
-                                let pred =
-                                    -gn.iter().zip(g.iter()).map(|(d, gi)| d * gi).sum::<f64>();
-                                pred < EPS_RESOLUTION * ev.epsilon
-                                    || opts.eps_tol.is_some_and(|t| pred < t)
-                            })
-                    {
-                        let new: Vec<f64> = (0..p).map(|i| theta[i] * gn[i].exp()).collect();
-                        match opts.final_step {
-                            FinalStep::Stop => break Termination::Converged,
-                            FinalStep::Extrapolate => {
-                                extrapolated = Some(new);
-                                break Termination::Converged;
-                            }
-                            FinalStep::Evaluate => {}
-                        }
-                        let trial = self.evaluator.evaluate(model, data, &new)?;
-                        evaluations += 1;
-                        if trial.epsilon <= ev.epsilon * (1.0 + 1e-12) {
-                            ev = trial;
-                            iterations += 1;
-                            history.push(record(&ev));
-                            self.report(iterations, history.last().expect("just pushed"));
-                        }
-                        break Termination::Converged;
-                    }
-                    // Whether the undamped step is negligible against the uncertainty,
-                    // should no damped step verify a descent (`STALL_WITHIN_STD`).
-                    let resolved = normal.as_ref().is_some_and(|llt| {
-                        step_from(llt, &g).is_some_and(|gn| {
-                            let gn: Vec<f64> = (0..p).map(|i| clip(i, gn[i])).collect();
-                            within_std(llt, &gn, STALL_WITHIN_STD, data, &ev)
-                        })
-                    });
-                    let dmax = (0..p).map(|i| a[(i, i)]).fold(0.0_f64, f64::max);
-                    let mut accepted = false;
-                    while mu < 1e16 {
-                        let mut damped = a.clone();
-                        for i in 0..p {
-                            damped[(i, i)] += mu * a[(i, i)].max(1e-12 * dmax);
-                        }
-                        let Ok(llt) = damped.llt(Side::Lower) else {
-                            mu *= nu;
-                            nu *= 2.0;
-                            continue;
-                        };
-                        let mut step = -g.clone();
-                        llt.solve_in_place(step.as_mat_mut());
-                        let cap = (0..p).map(|i| step[i].abs()).fold(0.0, f64::max);
-                        if cap > MAX_LOG_STEP {
-                            step *= faer::Scale(MAX_LOG_STEP / cap);
-                        }
-                        for i in 0..p {
-                            step[i] = clip(i, step[i]);
-                        }
-                        let new: Vec<f64> = (0..p).map(|i| theta[i] * step[i].exp()).collect();
-                        // Predicted decrease ‖r‖² − ‖r + J δ‖² = −(2δᵀg + δᵀAδ).
-                        let ad = &a * &step;
-                        let pred = -(2.0 * (step.transpose() * &g) + step.transpose() * &ad);
-                        let trial = match self.evaluator.evaluate(model, data, &new) {
-                            Ok(t) => t,
-                            // A trial θ the solver cannot handle is just a bad step.
-                            Err(_) => {
-                                evaluations += 1;
-                                mu *= nu;
-                                nu *= 2.0;
-                                continue;
-                            }
-                        };
-                        evaluations += 1;
-                        let actual = ev.epsilon - trial.epsilon;
-                        if actual > 0.0 && pred > 0.0 {
-                            let rho = actual / pred;
-                            mu *= (1.0 / 3.0_f64).max(1.0 - (2.0 * rho - 1.0).powi(3));
-                            nu = 2.0;
-                            ev = trial;
-                            accepted = true;
-                            break;
-                        }
-                        mu *= nu;
-                        nu *= 2.0;
-                    }
-                    if !accepted {
-                        let bounded = (0..p).any(|i| {
-                            let u = theta[i].ln();
-                            u >= u_hi[i] - 1e-12 || u <= u_lo[i] + 1e-12
-                        });
-                        if bounded && !hold_bounded {
-                            // The linear model promised a decrease from moving a parameter
-                            // back from its bound (ε is flat there) that did not come:
-                            // hold it and go on with the others.
-                            hold_bounded = true;
-                            mu = 1e-3;
-                            nu = 2.0;
-                            continue;
-                        }
-                        break if resolved {
-                            Termination::Converged
-                        } else {
-                            Termination::Stalled
-                        };
-                    }
-                    iterations += 1;
-                    history.push(record(&ev));
-                    self.report(iterations, history.last().expect("just pushed"));
+                    self.lm_step(model, data, opts, &bounds, &mut st)?
                 }
+            };
+            if let Some(t) = stop {
+                break t;
             }
         };
-        let covariance = match last_jac {
-            Some((t, jac)) if t == ev.theta => covariance_from_jacobian(&jac, data, &ev),
-            _ => self.covariance(model, data, &ev)?,
+        self.finish(model, data, &bounds, termination, st)
+    }
+
+    /// Paper (20): one fixed-κ Gauss–Newton step; `Some` when the iteration ends.
+    fn kappa_step(
+        &mut self,
+        model: &Model,
+        data: &MeasuredData,
+        kappa: f64,
+        opts: &ModeMatchingOptions,
+        st: &mut Iterate,
+    ) -> Result<Option<Termination>, UpdateError> {
+        let theta = st.ev.theta.clone();
+        let jac = &st.last_jac.as_ref().expect("set by the caller").1;
+        let Some(step) = gauss_newton_step(jac, &st.ev.r) else {
+            return Ok(Some(Termination::Diverged("SᵀWS is singular".into())));
         };
-        let theta = extrapolated.unwrap_or_else(|| ev.theta.clone());
-        let at_bound = (0..p)
-            .map(|i| {
-                let u = theta[i].ln();
-                if u >= u_hi[i] - 1e-9 {
-                    Some(AtBound::Upper)
-                } else if u <= u_lo[i] + 1e-9 {
-                    Some(AtBound::Lower)
-                } else {
-                    None
-                }
-            })
+        let new: Vec<f64> = (0..theta.len())
+            .map(|i| theta[i] + kappa * step[i])
             .collect();
+        if let Some(i) = new.iter().position(|v| !(v.is_finite() && *v > 0.0)) {
+            return Ok(Some(Termination::Diverged(format!(
+                "θ{} = {} after step {}",
+                i + 1,
+                new[i],
+                st.iterations + 1
+            ))));
+        }
+        let done = (0..theta.len()).all(|i| (new[i] - theta[i]).abs() / theta[i] < opts.tol);
+        st.ev = self.evaluator.evaluate(model, data, &new)?;
+        st.evaluations += 1;
+        self.accept(st);
+        Ok(done.then_some(Termination::Converged))
+    }
+
+    /// One Levenberg–Marquardt iteration in `u = ln θ` within the bounds; `Some` when the
+    /// iteration ends.
+    fn lm_step(
+        &mut self,
+        model: &Model,
+        data: &MeasuredData,
+        opts: &ModeMatchingOptions,
+        bounds: &LogBounds,
+        st: &mut Iterate,
+    ) -> Result<Option<Termination>, UpdateError> {
+        let theta = st.ev.theta.clone();
+        let jac = &st.last_jac.as_ref().expect("set by the caller").1;
+        let (a, g) = normal_equations(jac, &st.ev.r, &theta, bounds, st.hold_bounded);
+        let undamped = free_gauss_newton(&a, &g);
+        if let Some(fs) = &undamped
+            && let Some(t) = self.converged_step(model, data, opts, bounds, fs, &g, st)?
+        {
+            return Ok(Some(t));
+        }
+        // Whether the undamped step is negligible against the uncertainty, should no
+        // damped step verify a descent (`STALL_WITHIN_STD`).
+        let resolved = undamped.as_ref().is_some_and(|fs| {
+            let gn = clipped(bounds, &theta, &fs.step);
+            within_std(fs, &gn, STALL_WITHIN_STD, data, &st.ev)
+        });
+        if self.damped_step(model, data, bounds, &a, &g, st)? {
+            self.accept(st);
+            return Ok(None);
+        }
+        let bounded = (0..theta.len()).any(|i| bounds.side(i, theta[i].ln(), 1e-12).is_some());
+        if bounded && !st.hold_bounded {
+            // The linear model promised a decrease from moving a parameter back from its
+            // bound (ε is flat there) that did not come: hold it and go on with the others.
+            st.hold_bounded = true;
+            st.mu = 1e-3;
+            st.nu = 2.0;
+            return Ok(None);
+        }
+        Ok(Some(if resolved {
+            Termination::Converged
+        } else {
+            Termination::Stalled
+        }))
+    }
+
+    /// The convergence tests on the undamped step over the free parameters (a first-order
+    /// point of the bounded problem: the step is the projected gradient's Gauss–Newton
+    /// image, so it vanishes exactly there); takes the final step as `opts.final_step`
+    /// says and returns `Some(Converged)` when they hold.
+    #[allow(clippy::too_many_arguments)]
+    fn converged_step(
+        &mut self,
+        model: &Model,
+        data: &MeasuredData,
+        opts: &ModeMatchingOptions,
+        bounds: &LogBounds,
+        fs: &FreeStep,
+        g: &faer::Col<f64>,
+        st: &mut Iterate,
+    ) -> Result<Option<Termination>, UpdateError> {
+        let theta = &st.ev.theta;
+        let gn = clipped(bounds, theta, &fs.step);
+        let dot = -gn.iter().zip(g.iter()).map(|(d, gi)| d * gi).sum::<f64>();
+        // The predicted decrease of ε; a step cut at a bound has its own. A step that
+        // predicts no decrease is not a descent step and proves nothing (the shear frame's
+        // singular step cut at the bounds predicted an increase, once taken for
+        // convergence).
+        let pred = if gn == fs.step {
+            dot
+        } else {
+            let ad = fs.normal_times(&gn);
+            2.0 * dot - gn.iter().zip(&ad).map(|(d, x)| d * x).sum::<f64>()
+        };
+        let done = pred >= 0.0
+            && (gn.iter().all(|d| d.exp_m1().abs() < opts.tol)
+                || opts
+                    .sigma_tol
+                    .is_some_and(|t| within_std(fs, &gn, t, data, &st.ev))
+                || pred < EPS_RESOLUTION * st.ev.epsilon
+                || opts.eps_tol.is_some_and(|t| pred < t));
+        if !done {
+            return Ok(None);
+        }
+        let new: Vec<f64> = (0..theta.len()).map(|i| theta[i] * gn[i].exp()).collect();
+        match opts.final_step {
+            FinalStep::Stop => {}
+            FinalStep::Extrapolate => st.extrapolated = Some(new),
+            FinalStep::Evaluate => {
+                let trial = self.evaluator.evaluate(model, data, &new)?;
+                st.evaluations += 1;
+                if trial.epsilon <= st.ev.epsilon * (1.0 + 1e-12) {
+                    st.ev = trial;
+                    self.accept(st);
+                }
+            }
+        }
+        Ok(Some(Termination::Converged))
+    }
+
+    /// Levenberg–Marquardt trials with growing damping until one lowers ε (Nielsen's
+    /// update of μ from the gain ratio); `true` if one did (then `st.ev` is its evaluation).
+    fn damped_step(
+        &mut self,
+        model: &Model,
+        data: &MeasuredData,
+        bounds: &LogBounds,
+        a: &Mat<f64>,
+        g: &faer::Col<f64>,
+        st: &mut Iterate,
+    ) -> Result<bool, UpdateError> {
+        let p = g.nrows();
+        let theta = st.ev.theta.clone();
+        let dmax = (0..p).map(|i| a[(i, i)]).fold(0.0_f64, f64::max);
+        while st.mu < 1e16 {
+            let mut damped = a.clone();
+            for i in 0..p {
+                damped[(i, i)] += st.mu * a[(i, i)].max(1e-12 * dmax);
+            }
+            let Ok(llt) = damped.llt(Side::Lower) else {
+                st.mu *= st.nu;
+                st.nu *= 2.0;
+                continue;
+            };
+            let mut step = -g.clone();
+            llt.solve_in_place(step.as_mat_mut());
+            let cap = (0..p).map(|i| step[i].abs()).fold(0.0, f64::max);
+            if cap > MAX_LOG_STEP {
+                step *= faer::Scale(MAX_LOG_STEP / cap);
+            }
+            for i in 0..p {
+                step[i] = bounds.clip(i, theta[i].ln(), step[i]);
+            }
+            let new: Vec<f64> = (0..p).map(|i| theta[i] * step[i].exp()).collect();
+            // Predicted decrease ‖r‖² − ‖r + J δ‖² = −(2δᵀg + δᵀAδ).
+            let ad = a * &step;
+            let pred = -(2.0 * (step.transpose() * g) + step.transpose() * &ad);
+            st.evaluations += 1;
+            // A trial θ the solver cannot handle is just a bad step.
+            if let Ok(trial) = self.evaluator.evaluate(model, data, &new) {
+                let actual = st.ev.epsilon - trial.epsilon;
+                if actual > 0.0 && pred > 0.0 {
+                    let rho = actual / pred;
+                    st.mu *= (1.0 / 3.0_f64).max(1.0 - (2.0 * rho - 1.0).powi(3));
+                    st.nu = 2.0;
+                    st.ev = trial;
+                    return Ok(true);
+                }
+            }
+            st.mu *= st.nu;
+            st.nu *= 2.0;
+        }
+        Ok(false)
+    }
+
+    /// Counts an accepted iterate and reports it.
+    fn accept(&mut self, st: &mut Iterate) {
+        st.iterations += 1;
+        st.history.push(record(&st.ev));
+        let rec = st.history.last().expect("just pushed").clone();
+        self.report(st.iterations, &rec);
+    }
+
+    /// The result: covariance (15) and the first-order check at the final θ.
+    fn finish(
+        &mut self,
+        model: &Model,
+        data: &MeasuredData,
+        bounds: &LogBounds,
+        termination: Termination,
+        st: Iterate,
+    ) -> Result<ModeMatchingResult, UpdateError> {
+        let ev = st.ev;
+        let jac = match st.last_jac {
+            Some((t, jac)) if t == ev.theta => jac,
+            _ => self.evaluator.jacobian(model, data, &ev)?,
+        };
+        let covariance = covariance_from_jacobian(&jac, data, &ev);
+        let first_order = FirstOrder::at(&jac, &ev, bounds);
+        let theta = st.extrapolated.unwrap_or_else(|| ev.theta.clone());
         Ok(ModeMatchingResult {
+            at_bound: bounds.at_bound(&theta),
             theta,
-            at_bound,
             covariance,
             termination,
-            iterations,
-            evaluations,
+            iterations: st.iterations,
+            evaluations: st.evaluations,
             last: ev,
-            history,
+            history: st.history,
+            first_order,
         })
     }
 
@@ -539,18 +557,197 @@ fn covariance_from_jacobian(
     Some(cov)
 }
 
-/// Whether every `|step_i|` is below `t` standard deviations `√(A⁻¹)_ii` of (15) (scaled
-/// by `ε/(N − N_θ)` under weighting (9), as the covariance is), for the Cholesky factor of
-/// the normal matrix `A` of the same parameterization as the step.
-fn within_std(llt: &Llt<f64>, step: &[f64], t: f64, data: &MeasuredData, ev: &Evaluation) -> bool {
+/// Whether every `|step_i|` is below `t` standard deviations of (15) (the undamped step's
+/// `(A⁺)_ii`, scaled by `ε/(N − N_θ)` under weighting (9), as the covariance is).
+fn within_std(fs: &FreeStep, step: &[f64], t: f64, data: &MeasuredData, ev: &Evaluation) -> bool {
     let p = step.len();
-    let mut inv = Mat::<f64>::identity(p, p);
-    llt.solve_in_place(inv.as_mut());
     let scale = match data.weighting {
         Weighting::Heuristic { .. } => ev.epsilon / data.n_data().saturating_sub(p).max(1) as f64,
         _ => 1.0,
     };
-    (0..p).all(|i| step[i].abs() < t * (inv[(i, i)] * scale).sqrt())
+    (0..p).all(|i| step[i].abs() < t * (fs.var[i] * scale).sqrt())
+}
+
+/// The state of one iteration.
+struct Iterate {
+    ev: Evaluation,
+    evaluations: usize,
+    iterations: usize,
+    history: Vec<IterationRecord>,
+    /// Levenberg–Marquardt damping and its growth factor.
+    mu: f64,
+    nu: f64,
+    /// Set once releasing a parameter from its bound (descent pointing inwards) failed to
+    /// lower ε: from then on every parameter at a bound is held there.
+    hold_bounded: bool,
+    /// The Jacobian of the last iteration, reused for (15) if θ did not move after it.
+    last_jac: Option<(Vec<f64>, Mat<f64>)>,
+    /// The Gauss–Newton point of [`FinalStep::Extrapolate`].
+    extrapolated: Option<Vec<f64>>,
+}
+
+/// The normal matrix `A = J_uᵀJ_u` and gradient `g = J_uᵀr` (half that of ε) in
+/// `u = ln θ` (`J_u = J diag(θ)`), with every held parameter decoupled: a parameter at a
+/// bound that descent would push beyond (and, after a failed release, any parameter at a
+/// bound) gets the identity's row and column and a zero gradient, so no step moves it.
+fn normal_equations(
+    jac: &Mat<f64>,
+    r: &[f64],
+    theta: &[f64],
+    bounds: &LogBounds,
+    hold_bounded: bool,
+) -> (Mat<f64>, faer::Col<f64>) {
+    let p = theta.len();
+    let mut ju = jac.clone();
+    for l in 0..p {
+        for i in 0..ju.nrows() {
+            ju[(i, l)] *= theta[l];
+        }
+    }
+    let mut a = ju.transpose() * &ju;
+    let mut g = ju.transpose() * faer::ColRef::from_slice(r);
+    for i in 0..p {
+        if held(bounds, i, theta[i].ln(), g[i], hold_bounded) {
+            for j in 0..p {
+                a[(i, j)] = 0.0;
+                a[(j, i)] = 0.0;
+            }
+            a[(i, i)] = 1.0;
+            g[i] = 0.0;
+        }
+    }
+    (a, g)
+}
+
+/// Whether parameter `i` at `u = ln θ_i` is held at its bound: on it with the descent
+/// direction `−g_i` pointing out (or any parameter on a bound once `hold_bounded`).
+fn held(bounds: &LogBounds, i: usize, u: f64, g: f64, hold_bounded: bool) -> bool {
+    match bounds.side(i, u, 1e-12) {
+        Some(AtBound::Upper) => g < 0.0 || hold_bounded,
+        Some(AtBound::Lower) => g > 0.0 || hold_bounded,
+        None => false,
+    }
+}
+
+/// Below this ratio of a Cholesky pivot to its diagonal entry (`L_ii² / A_ii`: the share
+/// of column i of the scaled Jacobian not explained by the columns before it), the normal
+/// matrix is taken as singular and the step is the minimum-norm one. 1e-12 on `A` is 1e-6
+/// on the Jacobian's columns, far below anything the data resolve and far above rounding.
+const RANK_TOL: f64 = 1e-12;
+
+/// The undamped Gauss–Newton step (19) `δ = −A⁺g` on the free parameters, with `A⁺` the
+/// inverse of the normal matrix, or, where it is singular (more parameters than data
+/// resolve, normal in the field), its pseudo-inverse in Marquardt's scaling: the smallest
+/// step that reaches the linear model's minimum. Its predicted decrease `gᵀA⁺g` (the
+/// Gauss–Newton decrement) is zero exactly at a first-order point.
+struct FreeStep {
+    step: Vec<f64>,
+    /// `(A⁺)_ii`: the variance of `ln θ_i` by (15) where the data determine it.
+    var: Vec<f64>,
+    /// `A` itself, for the predicted decrease of a step cut at a bound.
+    a: Mat<f64>,
+}
+
+impl FreeStep {
+    fn normal_times(&self, x: &[f64]) -> Vec<f64> {
+        let ax = &self.a * faer::ColRef::from_slice(x);
+        (0..x.len()).map(|i| ax[i]).collect()
+    }
+}
+
+/// [`FreeStep`] for the normal equations `A`, `g` (held parameters already decoupled):
+/// Cholesky when `A` is numerically of full rank, else an eigendecomposition of
+/// `D^{-1/2} A D^{-1/2}` (`D = diag A`) with eigenvalues below [`RANK_TOL`] of the largest
+/// dropped. `None` if the step is not finite.
+fn free_gauss_newton(a: &Mat<f64>, g: &faer::Col<f64>) -> Option<FreeStep> {
+    let p = g.nrows();
+    let full_rank = a.llt(Side::Lower).ok().filter(|llt| {
+        let l = llt.L();
+        (0..p).all(|i| l[(i, i)] * l[(i, i)] >= RANK_TOL * a[(i, i)])
+    });
+    let (step, var) = match full_rank {
+        Some(llt) => {
+            let step = step_from(&llt, g)?;
+            let mut inv = Mat::<f64>::identity(p, p);
+            llt.solve_in_place(inv.as_mut());
+            (step, (0..p).map(|i| inv[(i, i)]).collect())
+        }
+        None => {
+            let pinv = scaled_pseudo_inverse(a)?;
+            let s = &pinv * g;
+            (
+                (0..p).map(|i| -s[i]).collect(),
+                (0..p).map(|i| pinv[(i, i)]).collect(),
+            )
+        }
+    };
+    step.iter().all(|x| x.is_finite()).then(|| FreeStep {
+        step,
+        var,
+        a: a.clone(),
+    })
+}
+
+/// `A⁺ = D^{-1/2} (D^{-1/2} A D^{-1/2})⁺ D^{-1/2}` with `D = diag A` (a zero diagonal is
+/// taken as 1), eigenvalues below [`RANK_TOL`] of the largest dropped.
+fn scaled_pseudo_inverse(a: &Mat<f64>) -> Option<Mat<f64>> {
+    let p = a.nrows();
+    let d: Vec<f64> = (0..p)
+        .map(|i| {
+            if a[(i, i)] > 0.0 {
+                a[(i, i)].sqrt()
+            } else {
+                1.0
+            }
+        })
+        .collect();
+    let scaled = Mat::from_fn(p, p, |i, j| a[(i, j)] / (d[i] * d[j]));
+    let evd = scaled.self_adjoint_eigen(Side::Lower).ok()?;
+    let (u, s) = (evd.U(), evd.S());
+    let top = (0..p).map(|k| s[k]).fold(0.0_f64, f64::max);
+    Some(Mat::from_fn(p, p, |i, j| {
+        let sum: f64 = (0..p)
+            .filter(|&k| s[k] > RANK_TOL * top)
+            .map(|k| u[(i, k)] * u[(j, k)] / s[k])
+            .sum();
+        sum / (d[i] * d[j])
+    }))
+}
+
+/// Each step entry cut at the bounds.
+fn clipped(bounds: &LogBounds, theta: &[f64], step: &[f64]) -> Vec<f64> {
+    (0..step.len())
+        .map(|i| bounds.clip(i, theta[i].ln(), step[i]))
+        .collect()
+}
+
+/// The first-order (KKT) conditions of the bounded problem at the final θ.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FirstOrder {
+    /// The largest `|∂ε/∂ln θ_i|` over the parameters free to move that way (a parameter
+    /// on a bound with descent pointing out of the box counts 0): the projected gradient.
+    pub projected_gradient: f64,
+    /// The Gauss–Newton decrement `gᵀA⁺g` on those parameters: the decrease of ε the
+    /// linear model still promises (0 at a first-order point).
+    pub decrement: f64,
+}
+
+impl FirstOrder {
+    fn at(jac: &Mat<f64>, ev: &Evaluation, bounds: &LogBounds) -> Self {
+        let (a, g) = normal_equations(jac, &ev.r, &ev.theta, bounds, false);
+        let projected_gradient = (0..g.nrows()).map(|i| 2.0 * g[i].abs()).fold(0.0, f64::max);
+        let decrement = free_gauss_newton(&a, &g).map_or(f64::NAN, |fs| {
+            -fs.step
+                .iter()
+                .zip(g.iter())
+                .map(|(d, gi)| d * gi)
+                .sum::<f64>()
+        });
+        Self {
+            projected_gradient,
+            decrement,
+        }
+    }
 }
 
 /// Gauss–Newton step (19)–(20) with κ = 1: `−(JᵀJ)⁻¹ Jᵀ r`.

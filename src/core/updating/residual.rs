@@ -41,6 +41,23 @@ impl Evaluation {
     }
 }
 
+/// How measured modes are paired with model modes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Pairing {
+    /// Paper (29): the candidate of highest MAC (the nearest eigenvalue for a mode measured
+    /// without a shape). Where two model modes cross or veer, the MAC of a measured shape
+    /// with them changes places and ε jumps between the two pairings.
+    #[default]
+    Mac,
+    /// The candidate that contributes least to ε (5): its eigenvalue term plus its shape
+    /// term with the optimal scale (7), the same weighted residual the fit minimizes. The
+    /// pairing is then part of the minimization (ε is the least of the candidates'
+    /// misfits, the lower envelope of functions smooth in θ), so ε is continuous through a
+    /// crossing or a veering, where the highest-MAC rule jumps. For a mode without a
+    /// shape both rules take the nearest eigenvalue.
+    Misfit,
+}
+
 /// Workspaces sharing a small model's Nelson solves. On the lab frame (142 DOF, 9 paired
 /// modes, ~50 µs each) two cut that part of a warm update from ~460 to ~260 µs; more
 /// would spend in hand-offs what they save.
@@ -66,6 +83,7 @@ pub struct Evaluator {
     last_sensitivities: Option<(Vec<f64>, Vec<Option<Sensitivity>>)>,
     /// Eigen solves start from the last solve's block ([`Evaluator::set_warm_start`]).
     warm: bool,
+    pairing: Pairing,
 }
 
 /// ∂λ_k (per parameter) and ∂φ_k at every channel (channels × parameters).
@@ -105,7 +123,17 @@ impl Evaluator {
             last_eig: None,
             last_sensitivities: None,
             warm: false,
+            pairing: Pairing::default(),
         })
+    }
+
+    /// The pairing rule of every evaluation from now on.
+    pub fn set_pairing(&mut self, pairing: Pairing) {
+        self.pairing = pairing;
+    }
+
+    pub fn pairing(&self) -> Pairing {
+        self.pairing
     }
 
     /// Warm eigen solves (a tracker's): each solve starts from the Ritz block of the last
@@ -144,7 +172,14 @@ impl Evaluator {
             && t == theta
             && *n == n_cand
         {
-            return Ok(residual_at(model, data, theta, eig.clone(), n_cand));
+            return Ok(residual_at(
+                model,
+                data,
+                theta,
+                eig.clone(),
+                n_cand,
+                self.pairing,
+            ));
         }
         // Modes that must be exact in a warm or relaxed solve: as many as there are measured modes
         // (they usually pair with the lowest); any other mode that gets paired is checked
@@ -163,17 +198,17 @@ impl Evaluator {
         };
         let ev = match quick {
             Some((eig, residual)) => {
-                let ev = residual_at(model, data, theta, eig, n_cand);
+                let ev = residual_at(model, data, theta, eig, n_cand, self.pairing);
                 if ev.pairing.iter().all(|&k| residual[k] <= STRICT_RESIDUAL) {
                     ev
                 } else {
                     let eig = self.eigen.solve(model, theta, n_cand)?;
-                    residual_at(model, data, theta, eig, n_cand)
+                    residual_at(model, data, theta, eig, n_cand, self.pairing)
                 }
             }
             None => {
                 let eig = self.eigen.solve(model, theta, n_cand)?;
-                residual_at(model, data, theta, eig, n_cand)
+                residual_at(model, data, theta, eig, n_cand, self.pairing)
             }
         };
         self.last_eig = Some((theta.to_vec(), n_cand, ev.eig.clone()));
@@ -335,14 +370,15 @@ impl NelsonWorkspace {
     }
 }
 
-/// The residual (6) at θ from the eigenpairs there, with pairing (29) among the first
-/// `n_cand` modes.
+/// The residual (6) at θ from the eigenpairs there, with each measured mode paired among
+/// the first `n_cand` modes by `rule`.
 fn residual_at(
     model: &Model,
     data: &MeasuredData,
     theta: &[f64],
     eig: EigenPairs,
     n_cand: usize,
+    rule: Pairing,
 ) -> Evaluation {
     let channels = model.channels();
     // Every candidate's reading at every model channel, once (rows: candidates).
@@ -366,15 +402,20 @@ fn residual_at(
     for mode in &data.modes {
         let (k, mac_k) = match &mode.shape {
             Some(s) => {
-                let mut best = (0, f64::NEG_INFINITY);
+                // The best candidate by the rule: the highest MAC, or the least misfit.
+                let mut best = (0, f64::INFINITY, f64::NAN);
                 for k in 0..n_cand {
                     gather(k, &s.channels, &mut dphi_k);
                     let v = mac(&s.values, &dphi_k);
-                    if v > best.1 {
-                        best = (k, v);
+                    let score = match rule {
+                        Pairing::Mac => -v,
+                        Pairing::Misfit => mode_misfit(mode, s, eig.lambda[k], &dphi_k),
+                    };
+                    if score < best.1 {
+                        best = (k, score, v);
                     }
                 }
-                best
+                (best.0, best.2)
             }
             // Frequency only: the nearest model eigenvalue.
             None => {
@@ -413,6 +454,22 @@ fn residual_at(
         r,
         epsilon,
     }
+}
+
+/// The contribution to ε (5) of measured mode `mode` paired with a model mode of
+/// eigenvalue `lambda` and channel readings `dphi`: its eigenvalue term and its shape term
+/// with the optimal scale factor (7).
+fn mode_misfit(
+    mode: &super::data::TargetMode,
+    s: &super::data::TargetShape,
+    lambda: f64,
+    dphi: &[f64],
+) -> f64 {
+    let c = scale_factor(&s.values, dphi);
+    let shape: f64 = (s.values.iter().zip(dphi).zip(&s.sigma))
+        .map(|((psi, d), sd)| ((psi - c * d) / sd).powi(2))
+        .sum();
+    ((mode.lambda - lambda) / mode.sigma_lambda).powi(2) + shape
 }
 
 /// `D φ_k` at the given channels into `out`.

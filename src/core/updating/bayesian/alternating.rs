@@ -1,4 +1,5 @@
-//! The paper's alternating substeps (21)–(23), as published.
+//! The paper's alternating substeps (21)–(23), as published; with bounds, each θ substep
+//! (23) is projected onto the box.
 
 use super::*;
 
@@ -15,7 +16,7 @@ impl BayesProblem {
     ) -> Result<BayesResult, BayesError> {
         let (n, nm, p) = (self.n, self.modes.len(), self.p);
         let mut lambda = self.lambda_hat();
-        let mut theta = theta0.to_vec();
+        let mut theta = self.bounds.clamp(theta0);
         let mut phi = Mat::zeros(n, nm);
         let mut iterations = 0;
         let mut converged = false;
@@ -55,12 +56,14 @@ impl BayesProblem {
                 Ok(llt) => llt.solve(rhs.as_mat()),
                 Err(_) => break,
             };
+            // Projected onto the bounds (no-op without them).
+            let new = self
+                .bounds
+                .clamp(&(0..p).map(|l| new[(l, 0)]).collect::<Vec<f64>>());
             let step = (0..p)
-                .map(|l| (new[(l, 0)] - theta[l]).abs())
+                .map(|l| (new[l] - theta[l]).abs())
                 .fold(0.0, f64::max);
-            for (l, t) in theta.iter_mut().enumerate() {
-                *t = new[(l, 0)];
-            }
+            theta = new;
             if self.progress.lock().is_ok_and(|g| g.is_some()) {
                 let state = BayesState {
                     lambda: lambda.clone(),

@@ -60,6 +60,7 @@ pub use workflow::{
     StageOne, WorkflowError, bayesian_update, choose_sigma_c, stage_one,
 };
 
+use super::bounds::LogBounds;
 use super::data::MeasuredData;
 use crate::core::modal::SPARSE_FROM_DOF;
 use crate::core::model::Model;
@@ -163,6 +164,8 @@ pub struct BayesProblem {
     inv_s2: f64,
     prior_mean: Vec<f64>,
     prior_w: Vec<f64>,
+    /// The box θ is kept within (the model's own bounds unless [`BayesProblem::set_bounds`]).
+    bounds: LogBounds,
 }
 
 /// The state `(λ, φ, θ)`.
@@ -279,7 +282,21 @@ impl BayesProblem {
             inv_s2: 1.0 / (settings.sigma_c * settings.sigma_c),
             prior_mean: settings.prior_mean.clone(),
             prior_w: settings.prior_std.iter().map(|s| 1.0 / (s * s)).collect(),
+            bounds: LogBounds::new(model, None),
         })
+    }
+
+    /// Keeps θ within `bounds` (as mode matching's `--bounds` with the model's own): the
+    /// Newton solver holds a parameter on a bound while descent points out of the box and
+    /// cuts steps at the bounds; the alternating solver projects each θ substep (23) onto
+    /// the box.
+    pub fn set_bounds(&mut self, bounds: LogBounds) {
+        self.bounds = bounds;
+    }
+
+    /// The box θ is kept within.
+    pub fn bounds(&self) -> &LogBounds {
+        &self.bounds
     }
 
     /// Uses the sparse φ substeps ([`augmented`]) whatever the model's size (they are

@@ -2,6 +2,7 @@
 //! continuation for small σ_c (module docs of [`super`]).
 
 use super::*;
+use crate::core::updating::AtBound;
 
 /// Newton iterations allowed to a warm-started stage of the σ_c continuation before it
 /// counts as failed (a warm stage needs 4–25 on the reference structures).
@@ -262,7 +263,7 @@ impl BayesProblem {
     ) -> Result<BayesResult, BayesError> {
         let nm = self.modes.len();
         let mut y: Vec<f64> = lambda0.to_vec();
-        y.extend_from_slice(theta0);
+        y.extend_from_slice(&self.bounds.clamp(theta0));
         let mut cur = self.reduced(&y[..nm], &y[nm..])?;
         let mut delta = TRUST_INITIAL_RADIUS;
         let mut least_mu = f64::INFINITY;
@@ -276,11 +277,15 @@ impl BayesProblem {
             }
             let ny = y.len();
             let scale_y = y.iter().fold(0.0_f64, |a, v| a.max(v.abs()));
+            // A θ on a bound with descent pointing out of the box is held there: the steps
+            // and the stopping test are those of the free variables (the bounded
+            // first-order conditions).
+            let (hessian, gradient) = self.free_part(&cur, &y[nm..]);
             // Undamped Newton step for the stopping test: converged when every component is
             // below `step_tol` relative, or the predicted decrease −gᵀΔ/2 is below
             // `decrement_tol` of F (F cannot be lowered measurably any more).
-            if let Ok(llt) = cur.hessian.llt(Side::Lower) {
-                let g = Col::from_fn(ny, |i| -cur.gradient[i]);
+            if let Ok(llt) = hessian.llt(Side::Lower) {
+                let g = Col::from_fn(ny, |i| -gradient[i]);
                 let step = llt.solve(g.as_mat());
                 let decrement: f64 = 0.5 * (0..ny).map(|i| g[i] * step[(i, 0)]).sum::<f64>();
                 if (0..ny)
@@ -295,16 +300,20 @@ impl BayesProblem {
             // `‖z‖ ≤ Δ < 1` keeps every λ and θ positive, and scales the modes' eigenvalues
             // (~1e5) and the parameters (~1) alike.
             let d: Vec<f64> = y.iter().map(|v| v.abs().max(1e-12 * scale_y)).collect();
-            let h_scaled = Mat::from_fn(ny, ny, |i, j| d[i] * cur.hessian[(i, j)] * d[j]);
-            let g_scaled: Vec<f64> = (0..ny).map(|i| d[i] * cur.gradient[i]).collect();
+            let h_scaled = Mat::from_fn(ny, ny, |i, j| d[i] * hessian[(i, j)] * d[j]);
+            let g_scaled: Vec<f64> = (0..ny).map(|i| d[i] * gradient[i]).collect();
             let h_diag = (0..ny).map(|i| h_scaled[(i, i)].abs()).fold(0.0, f64::max);
             let mut accepted = false;
             while delta >= TRUST_MIN_RADIUS {
                 let Some(step) = trust::trust_region_step(&h_scaled, &g_scaled, delta) else {
                     break;
                 };
-                let trial_y: Vec<f64> = (0..ny).map(|i| y[i] + d[i] * step.z[i]).collect();
+                let mut trial_y: Vec<f64> = (0..ny).map(|i| y[i] + d[i] * step.z[i]).collect();
                 let length = step.z.iter().map(|v| v * v).sum::<f64>().sqrt();
+                // Cut at the bounds; a cut step predicts its own decrease.
+                let predicted = self
+                    .cut_at_bounds(&y, &mut trial_y, &d, &h_scaled, &g_scaled)
+                    .unwrap_or(step.predicted);
                 // θ > 0 and λ > 0 (K positive definite, modes of a stable structure); the
                 // radius keeps them, a trial outside is treated like one that ascends.
                 let trial = if trial_y.iter().all(|v| *v > 0.0) {
@@ -317,7 +326,7 @@ impl BayesProblem {
                     continue;
                 };
                 // Ratio of the actual to the predicted decrease.
-                let rho = (cur.value - trial.value) / step.predicted;
+                let rho = (cur.value - trial.value) / predicted;
                 if trial.value < cur.value && rho > TRUST_ACCEPT {
                     if rho > 0.75 && step.on_boundary {
                         delta = (2.0 * delta).min(TRUST_MAX_RADIUS);
@@ -333,7 +342,7 @@ impl BayesProblem {
                 // A rejected step whose predicted decrease F cannot even resolve: the
                 // minimum is reached to F's rounding (shrinking the radius would only spend
                 // evaluations on rounding noise).
-                if step.predicted <= NEWTON_RESOLUTION * cur.value.abs() {
+                if predicted <= NEWTON_RESOLUTION * cur.value.abs() {
                     break;
                 }
                 delta = 0.25 * length.min(delta);
@@ -343,7 +352,7 @@ impl BayesProblem {
             if !accepted {
                 // No descent possible at machine precision: at the minimum if the Hessian
                 // is positive definite there, otherwise stuck (a saddle or a boundary).
-                converged = cur.hessian.llt(Side::Lower).is_ok();
+                converged = hessian.llt(Side::Lower).is_ok();
                 stuck = !converged;
                 break;
             }
@@ -362,5 +371,55 @@ impl BayesProblem {
             solver: BayesSolver::Newton,
             stages: Vec::new(),
         })
+    }
+}
+
+impl BayesProblem {
+    /// The Hessian and gradient of `F` with every held θ decoupled (identity row and
+    /// column, zero gradient): held is a θ on a bound whose descent direction points out of
+    /// the box. Without bounds, or with none active, `cur`'s own.
+    fn free_part(&self, cur: &Reduced, theta: &[f64]) -> (Mat<f64>, Vec<f64>) {
+        let nm = self.modes.len();
+        let mut h = cur.hessian.clone();
+        let mut g = cur.gradient.clone();
+        for (l, t) in theta.iter().enumerate() {
+            let i = nm + l;
+            let held = match self.bounds.side(l, t.ln(), 1e-12) {
+                Some(AtBound::Upper) => g[i] < 0.0,
+                Some(AtBound::Lower) => g[i] > 0.0,
+                None => false,
+            };
+            if held {
+                for j in 0..h.nrows() {
+                    h[(i, j)] = 0.0;
+                    h[(j, i)] = 0.0;
+                }
+                h[(i, i)] = 1.0;
+                g[i] = 0.0;
+            }
+        }
+        (h, g)
+    }
+
+    /// Cuts the θ part of `trial` at the bounds; if anything was cut, the decrease the
+    /// quadratic model (scaled `h`, `g` at `y`, scaling `d`) predicts for the cut step.
+    fn cut_at_bounds(
+        &self,
+        y: &[f64],
+        trial: &mut [f64],
+        d: &[f64],
+        h: &Mat<f64>,
+        g: &[f64],
+    ) -> Option<f64> {
+        let nm = self.modes.len();
+        let cut = self.bounds.clamp(&trial[nm..]);
+        if cut == trial[nm..] {
+            return None;
+        }
+        trial[nm..].copy_from_slice(&cut);
+        let z: Vec<f64> = (0..y.len()).map(|i| (trial[i] - y[i]) / d[i]).collect();
+        let hz = h * faer::ColRef::from_slice(&z);
+        let quad: f64 = (0..z.len()).map(|i| z[i] * hz[i]).sum();
+        Some(-(dot(g, &z) + 0.5 * quad))
     }
 }

@@ -17,7 +17,7 @@ use super::{
 };
 use crate::core::modal::ModalError;
 use crate::core::model::Model;
-use crate::core::updating::{Evaluator, MeasuredData};
+use crate::core::updating::{Evaluator, LogBounds, MeasuredData};
 
 /// Failures of a sweep.
 #[derive(Debug, thiserror::Error)]
@@ -41,6 +41,9 @@ pub struct SweepSettings {
     pub newton_max_iterations: usize,
     /// Also run the paper's alternating solver, to this many iterations.
     pub alternating_max_iterations: Option<usize>,
+    /// θ is kept within these factors of its nominal value as well as within the model's
+    /// own bounds (`None`: the model's only).
+    pub bounds: Option<(f64, f64)>,
 }
 
 /// The alternating solver's outcome at one σ_c.
@@ -98,6 +101,7 @@ fn point(
             prior_std: settings.prior_std.clone(),
         },
     )?;
+    prob.set_bounds(LogBounds::new(model, settings.bounds));
     let res = prob.solve(
         BayesSolver::Newton,
         &settings.theta0,

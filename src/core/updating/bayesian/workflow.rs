@@ -12,8 +12,8 @@ use super::{
 use crate::core::modal::ModalError;
 use crate::core::model::{Model, ModelError};
 use crate::core::updating::{
-    Evaluation, Evaluator, MeasuredData, ModeMatching, ModeMatchingOptions, ModeMatchingResult,
-    UpdateError,
+    Evaluation, Evaluator, LogBounds, MeasuredData, ModeMatching, ModeMatchingOptions,
+    ModeMatchingResult, UpdateError,
 };
 
 /// Relative precision of the automatic σ_c.
@@ -68,6 +68,9 @@ pub struct BayesOptions {
     pub max_iterations: usize,
     /// Also the paper's TSVD covariance (a dense eigendecomposition of (16)).
     pub tsvd: bool,
+    /// θ is kept within these factors of its nominal value as well as within the model's
+    /// own bounds (`None`: the model's only).
+    pub bounds: Option<(f64, f64)>,
 }
 
 /// How an update reports while it runs.
@@ -119,6 +122,7 @@ pub fn choose_sigma_c(
                 theta0: theta0.to_vec(),
                 newton_max_iterations: AUTO_TRIAL_ITERATIONS,
                 alternating_max_iterations: None,
+                bounds: opts.bounds,
             };
             let auto = AutoSigma::search(model, data, from, to, &settings, AUTO_SIGMA_TOL, report)?;
             Ok((auto.sigma_c, Some(auto)))
@@ -133,7 +137,7 @@ fn problem(
     sigma_c: f64,
     opts: &BayesOptions,
 ) -> Result<BayesProblem, BayesError> {
-    BayesProblem::new(
+    let mut prob = BayesProblem::new(
         model,
         data,
         &BayesSettings {
@@ -141,7 +145,9 @@ fn problem(
             prior_mean: opts.prior_mean.clone(),
             prior_std: opts.prior_std.clone(),
         },
-    )
+    )?;
+    prob.set_bounds(LogBounds::new(model, opts.bounds));
+    Ok(prob)
 }
 
 /// The Bayesian update of `model` to `data` from `theta0` (module docs).
@@ -177,7 +183,15 @@ pub fn bayesian_update(
     });
     let evaluation = Evaluator::new(model)?.evaluate(model, data, &result.state.theta)?;
     let mode_matching = ModeMatching::new(Evaluator::new(model)?)
-        .run_global(model, data, theta0, &ModeMatchingOptions::default())
+        .run_global(
+            model,
+            data,
+            theta0,
+            &ModeMatchingOptions {
+                bounds: opts.bounds,
+                ..Default::default()
+            },
+        )
         .ok()
         .filter(|(r, _)| r.converged())
         .map(|(r, _)| r);
