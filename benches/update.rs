@@ -1,5 +1,6 @@
-//! Timing of a full mode-matching update of the lab frame, of one residual + Jacobian, and
-//! of a full Bayesian MAP solve (setup and Newton with σ_c continuation, paper (14)).
+//! Timing of a full mode-matching update of the lab frame, of one residual + Jacobian, of
+//! a full Bayesian MAP solve (setup and Newton with σ_c continuation, paper (14)), and of
+//! the measured footbridge's update with its global search.
 //!
 //! Data: noise-drawn modal data simulated once (outside the timed loop) at a fixed truth,
 //! 9 modes, all 42 channels, frequency CoV 0.01, shape NSD 0.05, seed 42. The solver is
@@ -10,7 +11,10 @@ use std::hint::black_box;
 use boltwatch::core::model::Model;
 use boltwatch::core::simulate::{Noise, simulated_measured_data};
 use boltwatch::core::updating::bayesian::{BayesProblem, BayesSettings, BayesSolver};
-use boltwatch::core::updating::{Evaluator, MeasuredData, ModeMatching, ModeMatchingOptions};
+use boltwatch::core::updating::strategy::{UpdatePolicy, update};
+use boltwatch::core::updating::{
+    Evaluator, MeasuredData, ModeMatching, ModeMatchingOptions, Pairing,
+};
 use criterion::{Criterion, criterion_group, criterion_main};
 
 const TRUTH: [f64; 17] = [
@@ -171,5 +175,52 @@ fn bench_dense_eigen(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, bench_update, bench_bayesian, bench_dense_eigen);
+/// The measured footbridge of the SMU repository (`tests/data/smu-footbridge`: 946 DOFs,
+/// 17 bounded parameters, 5 modes on 58 channels), updated as `boltwatch update` does from
+/// nominal θ: the fit from θ0, the shape σ rescaled, the global search (32 Sobol starts,
+/// seed 1) on every core. The whole update, timed as one.
+fn bench_footbridge_search(c: &mut Criterion) {
+    let dir = format!("{}/tests/data/smu-footbridge", env!("CARGO_MANIFEST_DIR"));
+    let inputs = boltwatch::commands::inputs::load_inputs(
+        std::path::Path::new(&format!("{dir}/model.json")),
+        std::path::Path::new(&format!("{dir}/data.json")),
+        None,
+        1.0,
+    )
+    .unwrap();
+    let opts = ModeMatchingOptions {
+        bounds: Some((1e-3, 1e3)),
+        ..Default::default()
+    };
+    let run = || {
+        let mut ev = Evaluator::new(&inputs.model).unwrap();
+        ev.set_warm_start(true);
+        ev.set_pairing(Pairing::Misfit);
+        let mut mm = ModeMatching::new(ev);
+        let policy = UpdatePolicy::default();
+        update(
+            &mut mm,
+            &inputs.model,
+            &inputs.data,
+            &inputs.theta0,
+            &opts,
+            &policy,
+        )
+        .unwrap()
+    };
+    let up = run();
+    assert!(up.search.is_some(), "the footbridge's search did not run");
+    let mut group = c.benchmark_group("footbridge");
+    group.sample_size(10);
+    group.bench_function("update_with_global_search", |b| b.iter(|| black_box(run())));
+    group.finish();
+}
+
+criterion_group!(
+    benches,
+    bench_update,
+    bench_bayesian,
+    bench_dense_eigen,
+    bench_footbridge_search
+);
 criterion_main!(benches);

@@ -14,8 +14,8 @@ use super::progress::{fmt_theta, iteration_progress, progress_line, spinner};
 use super::{load_model, parse_positive_list, write_json};
 use crate::contract::stiffness::Method;
 use crate::contract::update::{
-    AutoSigmaDoc, BayesBlock, BayesDoc, BayesModeDoc, BayesParameter, BayesTermination, LCurveDoc,
-    Mapping, NamedTheta, SigmaMisfit, Solver, StageDoc, StageOneDoc, TsvdDoc,
+    AutoSigmaDoc, BayesBlock, BayesDoc, BayesModeDoc, BayesParameter, BayesTermination, Bound,
+    LCurveDoc, Mapping, NamedTheta, SigmaMisfit, Solver, StageDoc, StageOneDoc, TsvdDoc,
 };
 use crate::contract::{Schema, finite};
 use crate::core::model::Model;
@@ -24,6 +24,7 @@ use crate::core::updating::bayesian::{
     ContinuationStage, Observers, SigmaChoice, SigmaTrial, bayesian_update,
     stage_one as core_stage_one,
 };
+use crate::core::updating::{AtBound, LogBounds};
 
 /// Default prior standard deviation of θ: non-informative, as in the paper (§4.2).
 pub const DEFAULT_PRIOR_STD: f64 = 1000.0;
@@ -413,6 +414,7 @@ pub fn run_update(
         Err(_) => vec![f64::NAN; res.state.lambda.len()],
     };
     let tsvd_std = tsvd.as_ref().map_or(nan.clone(), |t| t.theta_std());
+    let at_bound = LogBounds::new(model, bounds).at_bound(&res.state.theta);
     let two_pi = 2.0 * std::f64::consts::PI;
     let out_doc = BayesDoc {
         schema: Schema::new(),
@@ -470,6 +472,10 @@ pub fn run_update(
                 sampling_std: finite(samp[l]),
                 tsvd_std: finite(tsvd_std[l]),
                 mode_matching_theta: mm.as_ref().map(|r| r.theta[l]),
+                at_bound: at_bound[l].map(|b| match b {
+                    AtBound::Upper => Bound::Upper,
+                    AtBound::Lower => Bound::Lower,
+                }),
             })
             .collect(),
         modes: set
@@ -496,6 +502,7 @@ pub fn run_update(
         &macs,
         (&post, &samp, &tsvd_std),
         mm.as_ref(),
+        &LogBounds::new(model, bounds),
     );
     println!(
         "σ_c = {sigma_c:.4e}{}; {:?} solver: {} after {} iterations in {seconds:.2} s",
@@ -538,14 +545,21 @@ fn print_bayes_table(
     macs: &[f64],
     (post, samp, tsvd): (&[f64], &[f64], &[f64]),
     mm: Option<&crate::core::updating::ModeMatchingResult>,
+    bounds: &LogBounds,
 ) {
     println!(
         "{:<12} {:>11} {:>11} {:>11} {:>11} {:>11}",
         "parameter", "θ MAP", "σ post.", "σ sampling", "σ TSVD", "θ mode m."
     );
+    let at_bound = bounds.at_bound(&res.state.theta);
     for (l, p) in model.parameters().iter().enumerate() {
+        let note = match at_bound[l] {
+            Some(AtBound::Upper) => "  at its upper bound",
+            Some(AtBound::Lower) => "  at its lower bound",
+            None => "",
+        };
         println!(
-            "{:<12} {:>11.5} {:>11.5} {:>11.5} {:>11.3e} {:>11}",
+            "{:<12} {:>11.5} {:>11.5} {:>11.5} {:>11.3e} {:>11}{note}",
             p.name,
             res.state.theta[l],
             post[l],

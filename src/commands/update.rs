@@ -3,6 +3,7 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
+use indicatif::ProgressBar;
 
 use super::bayes::BayesUpdateArgs;
 use super::inputs::{Inputs, load_inputs};
@@ -17,11 +18,12 @@ use crate::contract::update::{
 use crate::contract::{ModeComparison, Schema, finite};
 use crate::core::model::Model;
 use crate::core::stats::chi2_bound;
-use crate::core::updating::search::{SearchOptions, SearchResult, global_search};
-use crate::core::updating::variance::{MAX_OUTER, Rescaled};
+use crate::core::updating::search::SearchResult;
+use crate::core::updating::strategy::{self, SearchPolicy, Update, UpdatePolicy, WeightsPolicy};
+use crate::core::updating::variance::Rescaled;
 use crate::core::updating::{
-    AtBound, Evaluator, FinalStep, ModeMatching, ModeMatchingOptions, ModeMatchingResult, Pairing,
-    StepControl, Termination, Weighting,
+    AtBound, Evaluator, FinalStep, MeasuredData, ModeMatching, ModeMatchingOptions,
+    ModeMatchingResult, Pairing, StepControl, Termination, Weighting,
 };
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -46,9 +48,6 @@ pub enum WeightsArg {
     Stated,
     Rescaled,
 }
-
-/// Starts of the automatic global search.
-pub const AUTO_STARTS: usize = 32;
 
 #[derive(Debug, clap::Args)]
 pub struct UpdateArgs {
@@ -145,7 +144,32 @@ fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
         data,
         theta0,
     } = inputs;
-    let opts = ModeMatchingOptions {
+    let opts = options(args)?;
+    let policy = policy(args)?;
+    let (mut mm, pb) = solver(model, args.pairing)?;
+    let up = strategy::update(&mut mm, model, data, theta0, &opts, &policy)?;
+    pb.finish_and_clear();
+    let out = document(args, model, set, data, &up);
+    write_json(&args.out, &out)?;
+    let res = &up.fit.result;
+    print_table(model, set, res, &res.std());
+    if let Some(w) = &out.weights {
+        print_weights(w, out.epsilon, out.chi2_bound);
+    }
+    println!("found from: {}", out.start);
+    if let Some(s) = &out.search {
+        print_minima(s);
+    }
+    println!("{}", out.stop_reason);
+    if let Some(note) = &out.above_bound {
+        println!("{note}");
+    }
+    Ok(())
+}
+
+/// The iteration's options from the command line.
+fn options(args: &UpdateArgs) -> Result<ModeMatchingOptions> {
+    Ok(ModeMatchingOptions {
         step: args
             .kappa
             .map_or(StepControl::LevenbergMarquardt, StepControl::FixedKappa),
@@ -155,14 +179,41 @@ fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
         sigma_tol: None,
         eps_tol: args.eps_tol,
         bounds: parse_bounds(&args.bounds)?,
-    };
-    // Warm eigen solves, as the tracker's: from the second evaluation on, subspace
-    // iteration from the last Ritz block (checked by residuals and a Sturm count, cold
-    // when θ moved by more than a factor of 2 or a check fails). The lab frame's cold
-    // update: 18.4 → 13.0 ms for the whole process, the same minimum (ε within 3e-11,
-    // θ within 1e-9σ of the cold solves').
+    })
+}
+
+/// Weighting and search from the command line.
+fn policy(args: &UpdateArgs) -> Result<UpdatePolicy> {
+    Ok(UpdatePolicy {
+        weights: match args.weights {
+            WeightsArg::Auto => WeightsPolicy::Auto,
+            WeightsArg::Stated => WeightsPolicy::Stated,
+            WeightsArg::Rescaled => WeightsPolicy::Rescaled,
+        },
+        search: match (args.starts, args.no_search) {
+            (Some(0), _) => anyhow::bail!("--starts 0: need at least 1 start"),
+            (Some(n), _) => SearchPolicy::Starts(n),
+            (None, true) => SearchPolicy::Never,
+            (None, false) => SearchPolicy::Auto,
+        },
+        seed: args.seed,
+    })
+}
+
+/// The solver with a progress line per iteration of the fit from θ0.
+///
+/// Warm eigen solves, as the tracker's: from the second evaluation on, subspace iteration
+/// from the last Ritz block (checked by residuals and a Sturm count, cold when θ moved by
+/// more than a factor of 2 or a check fails). The lab frame's cold update: 18.4 → 13.0 ms
+/// for the whole process, the same minimum (ε within 3e-11, θ within 1e-9σ of the cold
+/// solves').
+fn solver(model: &Model, pairing: PairingArg) -> Result<(ModeMatching, ProgressBar)> {
     let mut evaluator = Evaluator::new(model)?;
     evaluator.set_warm_start(true);
+    evaluator.set_pairing(match pairing {
+        PairingArg::Misfit => Pairing::Misfit,
+        PairingArg::Mac => Pairing::Mac,
+    });
     let mut mm = ModeMatching::new(evaluator);
     let pb = iteration_progress("mode matching");
     let bar = pb.clone();
@@ -176,64 +227,30 @@ fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
             ),
         );
     }));
-    mm.evaluator.set_pairing(match args.pairing {
-        PairingArg::Misfit => Pairing::Misfit,
-        PairingArg::Mac => Pairing::Mac,
-    });
-    let first = mm.run(model, data, theta0, &opts)?;
-    pb.finish_and_clear();
+    Ok((mm, pb))
+}
+
+/// The result document (`boltwatch.update.v1`).
+fn document(
+    args: &UpdateArgs,
+    model: &Model,
+    set: &ModalSet,
+    data: &MeasuredData,
+    up: &Update,
+) -> ModeMatchingDoc {
+    let res = &up.fit.result;
     let bound = chi2_bound(data.n_data(), model.n_params());
-    let kappa = matches!(opts.step, StepControl::FixedKappa(_));
-    let rescale = match args.weights {
-        _ if kappa => None,
-        WeightsArg::Stated => None,
-        WeightsArg::Rescaled => Some("requested".to_string()),
-        WeightsArg::Auto => (first.epsilon() > bound).then(|| {
-            format!(
-                "under the stated σ the fit ends at ε = {:.1}, above its χ² bound {bound:.1}: \
-                 the σ of each mode's shape that misfits beyond them are scaled to its misfit \
-                 (the frequencies keep theirs)",
-                first.epsilon()
-            )
-        }),
-    };
-    let reason = match args.starts {
-        _ if kappa => None,
-        Some(0) => anyhow::bail!("--starts 0: need at least 1 start"),
-        Some(n) => Some((n, format!("{n} starts requested"))),
-        None if args.no_search => None,
-        None => search_reason(&first, bound).map(|r| (AUTO_STARTS, r)),
-    };
-    let ones = vec![1.0; data.n_groups()];
-    let pairing = mm.evaluator.pairing();
-    let local = match &rescale {
-        Some(_) => mm.run_rescaled(model, data, &first.theta, &ones, &opts, MAX_OUTER)?,
-        None => Rescaled::stated(data, first.clone()),
-    };
-    let (fit, start, search) = match reason {
-        None => (local, "theta0".to_string(), None),
-        Some((n, why)) => {
-            eprintln!("global search: {n} starts (seed {}): {why}", args.seed);
-            let options = SearchOptions {
-                rescale: rescale.is_some(),
-                pairing,
-                ..SearchOptions::new(n, args.seed)
-            };
-            let found = global_search(model, data, &opts, &options, Some(local))?;
-            let best = found.best();
-            let start = match best.reached_from.iter().find_map(|s| *s) {
-                Some(k) if !best.reached_from.contains(&None) => {
-                    format!("global search: start {} of {n} (seed {})", k + 1, args.seed)
-                }
-                _ => "theta0".to_string(),
-            };
-            (best.fit.clone(), start, Some(search_doc(&found, set, why)))
-        }
-    };
-    let res = fit.result.clone();
-    let stated_epsilon = fit.stated_epsilon;
     let std = res.std();
-    let out = ModeMatchingDoc {
+    let start = match (up.start, &up.search) {
+        (Some(k), Some((found, _))) => format!(
+            "global search: start {} of {} (seed {})",
+            k + 1,
+            found.options.starts,
+            args.seed
+        ),
+        _ => "theta0".to_string(),
+    };
+    ModeMatchingDoc {
         schema: Schema::new(),
         method: WireMethod::ModeMatching,
         structure: set.structure.clone(),
@@ -244,19 +261,16 @@ fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
         termination: (&res.termination).into(),
         iterations: res.iterations,
         evaluations: res.evaluations,
-        start: start.clone(),
-        chi2_bound: chi2_bound(data.n_data(), model.n_params()),
-        epsilon: stated_epsilon,
+        start,
+        chi2_bound: bound,
+        epsilon: up.fit.stated_epsilon,
         n_data: data.n_data(),
         weighting: match data.weighting {
             Weighting::Covariance => "covariance (8)",
             Weighting::Heuristic { .. } => "heuristic (9)",
         }
         .into(),
-        parameters: model
-            .parameters()
-            .iter()
-            .enumerate()
+        parameters: (model.parameters().iter().enumerate())
             .map(|(l, p)| ParameterResult {
                 name: p.name.clone(),
                 theta: res.theta[l],
@@ -267,13 +281,10 @@ fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
                 }),
             })
             .collect(),
-        modes: set
-            .modes
-            .iter()
-            .enumerate()
+        modes: (set.modes.iter().enumerate())
             .map(|(m, mode)| ModeResult::new(ModeComparison::of(&res.last, m, mode.frequency_hz)))
             .collect(),
-        stop_reason: stop_reason(&res),
+        stop_reason: stop_reason(res),
         first_order: Some(FirstOrderDoc {
             projected_gradient: res.first_order.projected_gradient,
             decrement: finite(res.first_order.decrement),
@@ -283,24 +294,10 @@ fn run_mode_matching(args: &UpdateArgs, inputs: &Inputs) -> Result<()> {
             PairingArg::Mac => "mac",
         }
         .into(),
-        search,
-        above_bound: above_bound(stated_epsilon, bound),
-        weights: Some(weights_doc(&fit, rescale)),
-    };
-    write_json(&args.out, &out)?;
-    print_table(model, set, &res, &std);
-    if let Some(w) = &out.weights {
-        print_weights(w, stated_epsilon, bound);
+        search: (up.search.as_ref()).map(|(found, why)| search_doc(found, set, why.clone())),
+        above_bound: above_bound(up.fit.stated_epsilon, bound),
+        weights: Some(weights_doc(&up.fit, up.rescaled.clone())),
     }
-    println!("found from: {start}");
-    if let Some(s) = &out.search {
-        print_minima(s);
-    }
-    println!("{}", out.stop_reason);
-    if let Some(note) = &out.above_bound {
-        println!("{note}");
-    }
-    Ok(())
 }
 
 /// The weighting of the result: the groups with their stated misfits and factors.
@@ -323,22 +320,6 @@ fn weights_doc(fit: &Rescaled, reason: Option<String>) -> WeightsDoc {
                 scale: fit.scales[g.group],
             })
             .collect(),
-    }
-}
-
-/// Why the fit from θ0 calls for a global search, if it does.
-fn search_reason(first: &ModeMatchingResult, bound: f64) -> Option<String> {
-    if !first.converged() {
-        Some(format!("the fit from θ0 stopped ({:?})", first.termination))
-    } else if first.epsilon() > bound {
-        Some(format!(
-            "the fit from θ0 ended at ε = {:.1}, above its χ² bound {bound:.1}",
-            first.epsilon()
-        ))
-    } else if first.at_bound.iter().any(Option::is_some) {
-        Some("the fit from θ0 ended with a parameter at a bound".into())
-    } else {
-        None
     }
 }
 

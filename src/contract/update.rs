@@ -294,6 +294,9 @@ pub struct BayesParameter {
     pub sampling_std: Option<f64>,
     pub tsvd_std: Option<f64>,
     pub mode_matching_theta: Option<f64>,
+    /// `upper` or `lower` when the MAP θ is on a bound (added to v1).
+    #[serde(default)]
+    pub at_bound: Option<Bound>,
 }
 
 /// One measured mode against the most probable mode and the model at the MAP θ.

@@ -353,3 +353,49 @@ fn bad_bayesian_options_exit_2() {
         assert!(err.contains(needle), "{extra:?}: {err}");
     }
 }
+
+/// The global search's options and a model's bounds, refused with exit 2 and the value
+/// named: `--starts 0`, a seed that is not a number, `lower > upper`, a nominal θ outside
+/// its bounds.
+#[test]
+fn bad_search_options_and_bounds_exit_2_naming_the_value() {
+    let case = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/smu-four-storey");
+    let model = format!("{case}/model.json");
+    let data = format!("{case}/data.json");
+    let out = tmp("search-bad.json");
+    for (extra, named) in [
+        (&["--starts", "0"][..], "--starts 0"),
+        (&["--seed", "abc"][..], "abc"),
+        (&["--seed", "-1"][..], "-1"),
+    ] {
+        let u = update(&model, &data, &out, extra);
+        let err = String::from_utf8_lossy(&u.stderr);
+        assert_eq!(u.status.code(), Some(2), "{extra:?}: {err}");
+        assert!(err.contains(named), "{extra:?}: {err}");
+    }
+    // The same case with its first parameter's bounds edited.
+    for (edit, named) in [
+        (("lower", 1.5, "upper", 1.2), "lower 1.5"),
+        (("lower", 1.2, "upper", 2.0), "nominal 1"),
+    ] {
+        let dir = tmp(&format!("bounds-{}", edit.1));
+        std::fs::create_dir_all(&dir).unwrap();
+        for entry in std::fs::read_dir(case).unwrap() {
+            let p = entry.unwrap().path();
+            std::fs::copy(&p, dir.join(p.file_name().unwrap())).unwrap();
+        }
+        let mut m: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join("model.json")).unwrap())
+                .unwrap();
+        m["parameters"][0][edit.0] = edit.1.into();
+        m["parameters"][0][edit.2] = edit.3.into();
+        std::fs::write(dir.join("model.json"), m.to_string()).unwrap();
+        let u = update(dir.join("model.json").to_str().unwrap(), &data, &out, &[]);
+        let err = String::from_utf8_lossy(&u.stderr);
+        assert_eq!(u.status.code(), Some(2), "{edit:?}: {err}");
+        assert!(
+            err.contains(named) && err.contains("storey1"),
+            "{edit:?}: {err}"
+        );
+    }
+}

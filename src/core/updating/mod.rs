@@ -8,6 +8,7 @@ pub mod globalize;
 pub mod mode_matching;
 pub mod residual;
 pub mod search;
+pub mod strategy;
 pub mod variance;
 
 pub use bounds::LogBounds;

@@ -1,4 +1,4 @@
-//! Mode matching (paper §2.2, §2.6.1): minimize ε(θ) (5) over θ > 0.
+//! Mode matching (paper §2.2, §2.6.1): minimize ε(θ) (5) over θ > 0 within bounds.
 //!
 //! Default step control: Levenberg–Marquardt in `u = ln θ` (θ stays positive whatever the
 //! step; Marquardt's diagonal scaling; damping updated from the gain ratio as in Nielsen,
@@ -8,8 +8,16 @@
 //! Levenberg–Marquardt that test is applied to the undamped Gauss–Newton step, so heavy
 //! damping cannot fake convergence. The covariance is (15), `(Sᵀ Σ_M⁻¹ S)⁻¹`, at the final θ.
 //!
-//! Pairing (29) is redone at every evaluation, so ε(θ) is piecewise smooth; a trial is
-//! accepted only if ε decreases.
+//! Bounds ([`LogBounds`]) hold every step: a parameter on a bound whose descent direction
+//! points out of the box is held there, the others step. The undamped step is taken over
+//! the free parameters, by the pseudo-inverse where the normal matrix is singular (more
+//! parameters than the data resolve is normal in the field), so it is zero exactly at a
+//! point where the bounded first-order (KKT) conditions hold, and a step that predicts no
+//! decrease (a singular step cut at a bound) is never taken for convergence. The result
+//! reports those conditions ([`FirstOrder`]).
+//!
+//! Pairing (29), or by least misfit ([`super::Pairing`]), is redone at every evaluation,
+//! so ε(θ) is piecewise smooth; a trial is accepted only if ε decreases.
 
 use faer::linalg::solvers::{Llt, Solve};
 use faer::{Mat, Side};
@@ -780,4 +788,55 @@ fn check_theta(model: &Model, theta: &[f64]) -> Result<(), UpdateError> {
         });
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A singular normal matrix (three parameters, rank 2: the third column of J is the sum
+    /// of the first two): the step is the minimum-norm one in Marquardt's scaling, it
+    /// reaches the linear model's minimum (`A δ = −g` holds, to rounding), its predicted
+    /// decrease is `gᵀA⁺g`, and with `g` in the range of `A` it is 0 exactly where g is.
+    #[test]
+    fn a_singular_normal_matrix_gives_the_minimum_norm_step() {
+        let j = Mat::from_fn(4, 3, |i, l| match l {
+            0 => [1.0, 2.0, 0.0, 1.0][i],
+            1 => [0.0, 1.0, 3.0, 1.0][i],
+            _ => [1.0, 3.0, 3.0, 2.0][i],
+        });
+        let r = faer::col![0.5, -1.0, 2.0, 0.25];
+        let a = j.transpose() * &j;
+        let g = j.transpose() * &r;
+        // Cholesky of this A "succeeds" on rounding; its last pivot is ~1e-16 of A_33.
+        let fs = free_gauss_newton(&a, &g).expect("a finite step");
+        let ad = fs.normal_times(&fs.step);
+        for i in 0..3 {
+            assert!(
+                (ad[i] + g[i]).abs() < 1e-12 * g.norm_l2(),
+                "A δ ≠ −g: {ad:?}"
+            );
+        }
+        // Minimum norm in the scaled metric: no component along the null vector (1, 1, −1)
+        // scaled by D^{1/2} = diag(√A_ii).
+        let d: Vec<f64> = (0..3).map(|i| a[(i, i)].sqrt()).collect();
+        let null = [d[0], d[1], -d[2]];
+        let along: f64 = (0..3).map(|i| d[i] * fs.step[i] * null[i]).sum();
+        assert!(along.abs() < 1e-12, "step has a null-space part {along}");
+        // The Gauss–Newton decrement is the squared projection of r on range(J).
+        let dec: f64 = -(0..3).map(|i| fs.step[i] * g[i]).sum::<f64>();
+        let qr = j.qr();
+        let q = qr.compute_thin_Q();
+        let proj = q.transpose() * &r;
+        // range(J) has dimension 2: the projection on its first two columns of Q.
+        let expected = proj[0] * proj[0] + proj[1] * proj[1];
+        assert!(
+            (dec - expected).abs() < 1e-12 * expected,
+            "{dec} vs {expected}"
+        );
+        // At a first-order point (g = 0) the step and decrement are 0.
+        let zero = faer::Col::<f64>::zeros(3);
+        let fs0 = free_gauss_newton(&a, &zero).unwrap();
+        assert!(fs0.step.iter().all(|v| *v == 0.0));
+    }
 }
