@@ -785,7 +785,7 @@ fn malformed_matrices_are_refused_naming_the_file_and_entry() {
             with(&TINY_K, &TINY_M),
             "PARAM:\"nominal\": 1.0, \"lower\": 2.0,",
             "model.json",
-            "parameters.k: need 0 < lower ≤ nominal ≤ upper < ∞",
+            "parameters.k: need 0 ≤ lower ≤ nominal ≤ upper < ∞",
         ),
         (
             "duplicate-parameter",

@@ -1,5 +1,6 @@
 //! Mode matching: exact recovery, calibration of the covariance (15), the paper's cases.
 
+use boltwatch::core::updating::strategy::{SearchPolicy, UpdatePolicy, update};
 use boltwatch::core::updating::{Evaluator, ModeMatching, ModeMatchingOptions};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -7,43 +8,54 @@ use rand_chacha::ChaCha8Rng;
 use super::common::{load_model, simulated_data};
 
 /// Noise-free data simulated at 20 random truths (θ_l ∈ [0.2, 5] log-uniform for the
-/// connections, θ17 ∈ [0.8, 1.2]), 9 modes, all 42 channels; recovered from θ0 = 1.
-/// Tolerance 1e-6 relative (the issue's): with zero residual, the iteration converges
-/// quadratically, so after the last step (< 1e-5 relative) the error is ~1e-10.
-/// Runs that end in a local minimum are restarted ([`ModeMatching::run_global`]). Also
-/// shows the paper's Fig. 13: cases whose pairing changes between iterations converge.
+/// connections, θ17 ∈ [0.8, 1.2]), 9 modes, all 42 channels; recovered from θ0 = 1 by the
+/// update with a global search (32 starts, `update --starts 32`). Tolerance 1e-6 relative
+/// (the issue's): with zero residual, the iteration converges quadratically, so after the
+/// last step (< 1e-5 relative) the error is ~1e-10. The fit from θ0 alone, with restarts
+/// ([`ModeMatching::run_global`]), ends in a local minimum in 2 of the 20 (cases 2 and 8:
+/// ε = 60 and 229, every frequency within 3.2σ: below the χ² bound, and with noisy data
+/// indistinguishable from the truth's own misfit), so no rule on the fit's misfit can
+/// call for the search there. Also shows the paper's Fig. 13: cases whose pairing changes
+/// between the iterations from θ0 converge.
 #[test]
 fn recovers_noise_free_lab_frame_truths() {
     let model = load_model("lab-frame");
     let mut rng = ChaCha8Rng::seed_from_u64(2026);
     let mut mm = ModeMatching::new(Evaluator::new(&model).unwrap());
+    let policy = UpdatePolicy {
+        search: SearchPolicy::Starts(32),
+        ..UpdatePolicy::default()
+    };
+    let opts = ModeMatchingOptions::default();
     let mut failures = Vec::new();
-    let mut switched = 0;
+    let (mut switched, mut from_theta0) = (0, 0);
     for case in 0..20 {
         let mut truth: Vec<f64> = (0..16)
             .map(|_| (rng.random_range(0.2f64.ln()..5f64.ln())).exp())
             .collect();
         truth.push(rng.random_range(0.8..1.2));
         let data = simulated_data(&model, &truth, 9, 0.01, 0.05, false, case);
-        let (res, path) = mm
-            .run_global(&model, &data, &[1.0; 17], &ModeMatchingOptions::default())
-            .unwrap();
-        let err = res
-            .theta
-            .iter()
-            .zip(&truth)
-            .map(|(a, b)| (a - b).abs() / b)
-            .fold(0.0, f64::max);
+        let error = |theta: &[f64]| {
+            (theta.iter().zip(&truth))
+                .map(|(a, b)| (a - b).abs() / b)
+                .fold(0.0, f64::max)
+        };
+        let (alone, path) = mm.run_global(&model, &data, &[1.0; 17], &opts).unwrap();
+        from_theta0 += usize::from(alone.converged() && error(&alone.theta) < 1e-6);
+        let up = update(&mut mm, &model, &data, &[1.0; 17], &opts, &policy).unwrap();
+        let res = &up.fit.result;
+        let err = error(&res.theta);
         println!(
-            "case {case:2}: {path:?} {:?} after {:3} iterations ({:3} evaluations), ε = {:.3e}, max rel. error {err:.2e}",
+            "case {case:2}: {:?} after {:3} iterations, ε = {:.3e}, max rel. error {err:.2e} \
+             (from θ0 alone: {path:?}, error {:.2e})",
             res.termination,
             res.iterations,
-            res.evaluations,
-            res.epsilon()
+            res.epsilon(),
+            error(&alone.theta)
         );
         // Pairing (29) redone every iteration; the paper's Fig. 13 shows it changing.
-        let pairings: Vec<&Vec<usize>> = res.history.iter().map(|h| &h.pairing).collect();
-        if pairings.windows(2).any(|w| w[0] != w[1]) {
+        let pairings: Vec<&Vec<usize>> = alone.history.iter().map(|h| &h.pairing).collect();
+        if alone.converged() && pairings.windows(2).any(|w| w[0] != w[1]) {
             switched += 1;
             for (i, p) in pairings.iter().enumerate() {
                 println!("    iteration {i:2}: pairing {p:?}");
@@ -54,8 +66,9 @@ fn recovers_noise_free_lab_frame_truths() {
         }
     }
     assert!(failures.is_empty(), "not recovered: {failures:?}");
-    // At least one recovered case had its pairing change between iterations (Fig. 13).
-    println!("{switched} of 20 cases changed pairing during the iteration");
+    println!("from θ0 alone with restarts: {from_theta0} of 20 recovered");
+    // At least one case had its pairing change between iterations (Fig. 13) and converged.
+    println!("{switched} of 20 cases changed pairing during the iteration from θ0");
     assert!(switched > 0, "no case exercised a pairing change");
 }
 

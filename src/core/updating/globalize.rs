@@ -5,6 +5,7 @@
 use super::UpdateError;
 use super::data::MeasuredData;
 use super::mode_matching::{ModeMatching, ModeMatchingOptions, ModeMatchingResult};
+use super::strategy::crossed;
 use crate::core::model::Model;
 use crate::core::stats::chi2_bound;
 
@@ -22,8 +23,9 @@ pub enum StartPath {
 pub const RESTART_STARTS: [f64; 6] = [0.5, 2.0, 0.3, 3.5, 0.7, 1.4];
 
 impl ModeMatching {
-    /// [`ModeMatching::run`] with globalization (DESIGN §5): a run that does not converge, or
-    /// ends with ε above [`chi2_bound`], is taken for a local minimum (typically MAC pairing
+    /// [`ModeMatching::run`] with globalization (DESIGN §5): a run that does not converge,
+    /// ends with ε above [`chi2_bound`], or pairs two measured modes with model modes in
+    /// the opposite order, is taken for a local minimum (typically MAC pairing
     /// locked onto wrong modes early), and the update is restarted from the spread starts
     /// [`RESTART_STARTS`] (the E-type and other parameters at their nominal value). The first
     /// restart that converges within the bound is accepted; otherwise the lowest-ε converged
@@ -36,7 +38,11 @@ impl ModeMatching {
         opts: &ModeMatchingOptions,
     ) -> Result<(ModeMatchingResult, StartPath), UpdateError> {
         let bound = chi2_bound(data.n_data(), model.n_params());
-        let good = |r: &ModeMatchingResult| r.converged() && r.epsilon() <= bound;
+        // Converged within its bound, and not paired across a crossing (a minimum on one
+        // side of it that the other side may beat; see [`super::strategy::crossed`]).
+        let good = |r: &ModeMatchingResult| {
+            r.converged() && r.epsilon() <= bound && crossed(&r.last.pairing).is_none()
+        };
         let first = self.run(model, data, theta0, opts)?;
         if good(&first) {
             return Ok((first, StartPath::Given));

@@ -168,7 +168,7 @@ pub fn search_reason(first: &ModeMatchingResult, bound: f64) -> Option<String> {
 /// order, if any: a fit on one side of a crossing, with a minimum on the other side too
 /// (noise-free lab-frame truths that swap two modes end there 15 times in 50, at ε below
 /// its χ² bound).
-fn crossed(pairing: &[usize]) -> Option<(usize, usize)> {
+pub fn crossed(pairing: &[usize]) -> Option<(usize, usize)> {
     (0..pairing.len())
         .flat_map(|a| (a + 1..pairing.len()).map(move |b| (a, b)))
         .find(|&(a, b)| pairing[a] > pairing[b])
