@@ -500,9 +500,8 @@ pub fn run_update(
         &res,
         &eval,
         &macs,
-        (&post, &samp, &tsvd_std),
+        (&post, &samp, &tsvd_std, &at_bound),
         mm.as_ref(),
-        &LogBounds::new(model, bounds),
     );
     println!(
         "σ_c = {sigma_c:.4e}{}; {:?} solver: {} after {} iterations in {seconds:.2} s",
@@ -537,21 +536,22 @@ pub fn run_update(
     Ok(())
 }
 
+/// Per parameter: posterior, sampling and TSVD std, and the bound it is on.
+type ParameterColumns<'a> = (&'a [f64], &'a [f64], &'a [f64], &'a [Option<AtBound>]);
+
 fn print_bayes_table(
     model: &Model,
     set: &crate::contract::modal_set::ModalSet,
     res: &BayesResult,
     eval: &crate::core::updating::Evaluation,
     macs: &[f64],
-    (post, samp, tsvd): (&[f64], &[f64], &[f64]),
+    (post, samp, tsvd, at_bound): ParameterColumns<'_>,
     mm: Option<&crate::core::updating::ModeMatchingResult>,
-    bounds: &LogBounds,
 ) {
     println!(
         "{:<12} {:>11} {:>11} {:>11} {:>11} {:>11}",
         "parameter", "θ MAP", "σ post.", "σ sampling", "σ TSVD", "θ mode m."
     );
-    let at_bound = bounds.at_bound(&res.state.theta);
     for (l, p) in model.parameters().iter().enumerate() {
         let note = match at_bound[l] {
             Some(AtBound::Upper) => "  at its upper bound",

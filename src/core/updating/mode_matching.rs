@@ -276,6 +276,7 @@ impl ModeMatching {
             nu: 2.0,
             hold_bounded: false,
             last_jac: None,
+            last_first_order: None,
             extrapolated: None,
         };
         self.report(0, &st.history[0].clone());
@@ -346,6 +347,11 @@ impl ModeMatching {
         let jac = &st.last_jac.as_ref().expect("set by the caller").1;
         let (a, g) = normal_equations(jac, &st.ev.r, &theta, bounds, st.hold_bounded);
         let undamped = free_gauss_newton(&a, &g);
+        // The first-order check of this θ, for the result if the iteration ends here.
+        st.last_first_order = (!st.hold_bounded).then(|| {
+            let fo = FirstOrder::of(&g, undamped.as_ref());
+            (theta.clone(), fo)
+        });
         if let Some(fs) = &undamped
             && let Some(t) = self.converged_step(model, data, opts, bounds, fs, &g, st)?
         {
@@ -509,7 +515,10 @@ impl ModeMatching {
             _ => self.evaluator.jacobian(model, data, &ev)?,
         };
         let covariance = covariance_from_jacobian(&jac, data, &ev);
-        let first_order = FirstOrder::at(&jac, &ev, bounds);
+        let first_order = match st.last_first_order {
+            Some((t, fo)) if t == ev.theta => fo,
+            _ => FirstOrder::at(&jac, &ev, bounds),
+        };
         let theta = st.extrapolated.unwrap_or_else(|| ev.theta.clone());
         Ok(ModeMatchingResult {
             at_bound: bounds.at_bound(&theta),
@@ -590,6 +599,9 @@ struct Iterate {
     hold_bounded: bool,
     /// The Jacobian of the last iteration, reused for (15) if θ did not move after it.
     last_jac: Option<(Vec<f64>, Mat<f64>)>,
+    /// The first-order check made at a θ by its iteration (reused by the result if θ did
+    /// not move after it).
+    last_first_order: Option<(Vec<f64>, FirstOrder)>,
     /// The Gauss–Newton point of [`FinalStep::Extrapolate`].
     extrapolated: Option<Vec<f64>>,
 }
@@ -746,8 +758,13 @@ pub struct FirstOrder {
 impl FirstOrder {
     fn at(jac: &Mat<f64>, ev: &Evaluation, bounds: &LogBounds) -> Self {
         let (a, g) = normal_equations(jac, &ev.r, &ev.theta, bounds, false);
+        Self::of(&g, free_gauss_newton(&a, &g).as_ref())
+    }
+
+    /// From the gradient (held parameters zeroed) and the undamped step over the free ones.
+    fn of(g: &faer::Col<f64>, fs: Option<&FreeStep>) -> Self {
         let projected_gradient = (0..g.nrows()).map(|i| 2.0 * g[i].abs()).fold(0.0, f64::max);
-        let decrement = free_gauss_newton(&a, &g).map_or(f64::NAN, |fs| {
+        let decrement = fs.map_or(f64::NAN, |fs| {
             -fs.step
                 .iter()
                 .zip(g.iter())

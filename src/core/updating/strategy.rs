@@ -7,7 +7,7 @@
 use super::UpdateError;
 use super::data::MeasuredData;
 use super::mode_matching::{ModeMatching, ModeMatchingOptions, ModeMatchingResult, StepControl};
-use super::search::{SearchOptions, SearchResult, global_search};
+use super::search::{MAX_STARTS, SearchOptions, SearchResult, global_search};
 use super::variance::{MAX_OUTER, Rescaled};
 use crate::core::model::Model;
 use crate::core::stats::chi2_bound;
@@ -77,11 +77,13 @@ pub fn update(
     opts: &ModeMatchingOptions,
     policy: &UpdatePolicy,
 ) -> Result<Update, UpdateError> {
-    if let SearchPolicy::Starts(0) = policy.search {
+    if let SearchPolicy::Starts(n) = policy.search
+        && !(1..=MAX_STARTS).contains(&n)
+    {
         return Err(UpdateError::Option {
             name: "starts",
-            value: 0.0,
-            reason: "need at least 1 start",
+            value: n as f64,
+            reason: "need 1 to 65,536 starts",
         });
     }
     let first = mm.run(model, data, theta0, opts)?;
