@@ -5,7 +5,6 @@
 use super::UpdateError;
 use super::data::MeasuredData;
 use super::mode_matching::{ModeMatching, ModeMatchingOptions, ModeMatchingResult};
-use super::strategy::crossed;
 use crate::core::model::Model;
 use crate::core::stats::chi2_bound;
 
@@ -23,9 +22,8 @@ pub enum StartPath {
 pub const RESTART_STARTS: [f64; 6] = [0.5, 2.0, 0.3, 3.5, 0.7, 1.4];
 
 impl ModeMatching {
-    /// [`ModeMatching::run`] with globalization (DESIGN §5): a run that does not converge,
-    /// ends with ε above [`chi2_bound`], or pairs two measured modes with model modes in
-    /// the opposite order, is taken for a local minimum (typically MAC pairing
+    /// [`ModeMatching::run`] with globalization (DESIGN §5): a run that does not converge, or
+    /// ends with ε above [`chi2_bound`], is taken for a local minimum (typically MAC pairing
     /// locked onto wrong modes early), and the update is restarted from the spread starts
     /// [`RESTART_STARTS`] (the E-type and other parameters at their nominal value). The first
     /// restart that converges within the bound is accepted; otherwise the lowest-ε converged
@@ -38,11 +36,10 @@ impl ModeMatching {
         opts: &ModeMatchingOptions,
     ) -> Result<(ModeMatchingResult, StartPath), UpdateError> {
         let bound = chi2_bound(data.n_data(), model.n_params());
-        // Converged within its bound, and not paired across a crossing (a minimum on one
-        // side of it that the other side may beat; see [`super::strategy::crossed`]).
-        let good = |r: &ModeMatchingResult| {
-            r.converged() && r.epsilon() <= bound && crossed(&r.last.pairing).is_none()
-        };
+        // Converged within its bound. (A fit paired across a crossing is accepted here: the
+        // tracker's cold starts and the diagnosis's fits keep their behaviour; `update`
+        // searches on it, see [`super::strategy::search_reason`].)
+        let good = |r: &ModeMatchingResult| r.converged() && r.epsilon() <= bound;
         let first = self.run(model, data, theta0, opts)?;
         if good(&first) {
             return Ok((first, StartPath::Given));
@@ -57,7 +54,11 @@ impl ModeMatching {
                     _ => value * p.nominal,
                 })
                 .collect();
-            let r = self.run(model, data, &start, opts)?;
+            // A start the solver cannot handle (an eigen solve that fails at its θ) is a
+            // bad start, not a failed update.
+            let Ok(r) = self.run(model, data, &start, opts) else {
+                continue;
+            };
             let path = StartPath::Restart { value };
             if good(&r) {
                 return Ok((r, path));

@@ -426,9 +426,12 @@ impl ModeMatching {
             FinalStep::Stop => {}
             FinalStep::Extrapolate => st.extrapolated = Some(new),
             FinalStep::Evaluate => {
-                let trial = self.evaluator.evaluate(model, data, &new)?;
+                // Kept only if ε does not rise; a θ the solver cannot handle (a step along a
+                // direction the data hardly see) is not taken.
                 st.evaluations += 1;
-                if trial.epsilon <= st.ev.epsilon * (1.0 + 1e-12) {
+                if let Ok(trial) = self.evaluator.evaluate(model, data, &new)
+                    && trial.epsilon <= st.ev.epsilon * (1.0 + 1e-12)
+                {
                     st.ev = trial;
                     self.accept(st);
                 }

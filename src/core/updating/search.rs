@@ -143,20 +143,31 @@ pub fn global_search(
     let cold: Vec<(Vec<f64>, Vec<f64>)> =
         starts.iter().map(|s| (s.clone(), ones.clone())).collect();
     let screened = fit_all(model, data, &screen_opts, search, 2, &cold)?;
-    let mut order: Vec<usize> = (0..starts.len()).collect();
-    order.sort_by(|&a, &b| rank(&screened[a]).total_cmp(&rank(&screened[b])));
+    let mut order: Vec<usize> = (0..starts.len())
+        .filter(|&k| screened[k].is_some())
+        .collect();
+    let screen_rank = |k: usize| screened[k].as_ref().map_or(f64::INFINITY, rank);
+    order.sort_by(|&a, &b| screen_rank(a).total_cmp(&screen_rank(b)));
     order.truncate(search.polish);
     order.sort_unstable();
     let from: Vec<(Vec<f64>, Vec<f64>)> = (order.iter())
-        .map(|&k| (screened[k].result.theta.clone(), screened[k].scales.clone()))
+        .filter_map(|&k| screened[k].as_ref())
+        .map(|f| (f.result.theta.clone(), f.scales.clone()))
         .collect();
     let polished = fit_all(model, data, opts, search, MAX_OUTER, &from)?;
-    let fits = first
-        .map(|f| (None, f))
-        .into_iter()
-        .chain(order.iter().map(|&k| Some(k)).zip(polished));
+    let fits = first.map(|f| (None, f)).into_iter().chain(
+        (order.iter().map(|&k| Some(k)).zip(polished)).filter_map(|(k, f)| f.map(|f| (k, f))),
+    );
+    let minima = distinct_minima(fits);
+    if minima.is_empty() {
+        return Err(UpdateError::Option {
+            name: "starts",
+            value: search.starts as f64,
+            reason: "no start could be fitted (every eigen solve failed)",
+        });
+    }
     Ok(SearchResult {
-        minima: distinct_minima(fits),
+        minima,
         starts,
         options: *search,
     })
@@ -173,7 +184,8 @@ fn rank(f: &Rescaled) -> f64 {
 
 /// Mode matching from every start `(θ, factors)`, in parallel, one evaluator per worker
 /// (cold solves: the fit of a start does not depend on what its worker ran before); with
-/// rescaled σ, at most `max_outer` fits per start.
+/// rescaled σ, at most `max_outer` fits per start. A start whose fit fails (an eigen solve
+/// the solver cannot do at its θ) is a bad start: `None`, not a failed search.
 fn fit_all(
     model: &Model,
     data: &MeasuredData,
@@ -181,8 +193,10 @@ fn fit_all(
     search: &SearchOptions,
     max_outer: usize,
     starts: &[(Vec<f64>, Vec<f64>)],
-) -> Result<Vec<Rescaled>, UpdateError> {
-    starts
+) -> Result<Vec<Option<Rescaled>>, UpdateError> {
+    // The evaluator is built once up front, so a model it cannot take is an error.
+    Evaluator::new(model)?;
+    Ok(starts
         .par_iter()
         .map_init(
             || None::<ModeMatching>,
@@ -190,20 +204,21 @@ fn fit_all(
                 let mm = match mm {
                     Some(mm) => mm,
                     None => {
-                        let mut ev = Evaluator::new(model)?;
+                        let mut ev = Evaluator::new(model).ok()?;
                         ev.set_pairing(search.pairing);
                         mm.insert(ModeMatching::new(ev))
                     }
                 };
                 if search.rescale {
                     mm.run_rescaled(model, data, theta, scales, opts, max_outer)
+                        .ok()
                 } else {
-                    let r = mm.run(model, data, theta, opts)?;
-                    Ok(Rescaled::stated(data, r))
+                    let r = mm.run(model, data, theta, opts).ok()?;
+                    Some(Rescaled::stated(data, r))
                 }
             },
         )
-        .collect()
+        .collect())
 }
 
 /// Groups fits into distinct minima (module docs), best first.
