@@ -12,15 +12,14 @@ use super::write_json;
 use crate::contract::modal_set::ModalSet;
 use crate::contract::stiffness::Method as WireMethod;
 use crate::contract::update::{
-    Bound, FirstOrderDoc, GroupDoc, MinimumDoc, ModeMatchingDoc, ModeResult, ParameterResult,
-    SearchDoc, WeightsDoc,
+    Bound, FirstOrderDoc, MinimumDoc, ModeMatchingDoc, ModeResult, ParameterResult, SearchDoc,
+    WeightsDoc,
 };
 use crate::contract::{ModeComparison, Schema, finite};
 use crate::core::model::Model;
 use crate::core::stats::chi2_bound;
 use crate::core::updating::search::SearchResult;
 use crate::core::updating::strategy::{self, SearchPolicy, Update, UpdatePolicy, WeightsPolicy};
-use crate::core::updating::variance::Rescaled;
 use crate::core::updating::{
     AtBound, Evaluator, FinalStep, MeasuredData, ModeMatching, ModeMatchingOptions,
     ModeMatchingResult, Pairing, StepControl, Termination, Weighting,
@@ -296,30 +295,7 @@ fn document(
         .into(),
         search: (up.search.as_ref()).map(|(found, why)| search_doc(found, set, why.clone())),
         above_bound: above_bound(up.fit.stated_epsilon, bound),
-        weights: Some(weights_doc(&up.fit, up.rescaled.clone())),
-    }
-}
-
-/// The weighting of the result: the groups with their stated misfits and factors.
-fn weights_doc(fit: &Rescaled, reason: Option<String>) -> WeightsDoc {
-    WeightsDoc {
-        rule: if reason.is_some() {
-            "rescaled"
-        } else {
-            "stated"
-        }
-        .into(),
-        epsilon_rescaled: reason.as_ref().map(|_| fit.result.epsilon()),
-        reason,
-        objective: fit.objective,
-        groups: (fit.groups.iter())
-            .map(|g| GroupDoc {
-                name: g.name.clone(),
-                n: g.n,
-                misfit: g.misfit,
-                scale: fit.scales[g.group],
-            })
-            .collect(),
+        weights: Some(WeightsDoc::of(&up.fit, up.rescaled.clone())),
     }
 }
 

@@ -4,6 +4,7 @@
 use chrono::{DateTime, Utc};
 use serde::{Deserialize, Serialize};
 
+use super::update::WeightsDoc;
 use super::wire::{Message, Schema, time};
 use crate::core::updating::{Evaluation, Termination as FitTermination};
 
@@ -25,13 +26,17 @@ pub struct Estimate {
     pub warm_start: bool,
     /// Why the fit started cold (`first set`, a failed warm start).
     pub cold_start_reason: Option<String>,
-    /// ε (6) at the estimate.
+    /// ε (6) at the estimate, under the set's stated σ.
     pub epsilon: f64,
     /// Its χ² bound.
     pub epsilon_bound: f64,
     pub temperature_c: Option<f64>,
     pub parameters: Vec<ParameterEstimate>,
     pub modes: Vec<ModeComparison>,
+    /// Present when the fit weighed the data by σ rescaled per data group (ε under the
+    /// stated σ above its χ² bound): the groups, their misfits and factors, and why.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub weights: Option<WeightsDoc>,
 }
 
 impl Message for Estimate {

@@ -6,6 +6,7 @@ use serde::{Deserialize, Serialize};
 
 use super::stiffness::{Method, ModeComparison, Termination};
 use super::wire::{Message, Schema};
+use crate::core::updating::variance::Rescaled;
 
 /// A mode-matching update (module docs).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -62,6 +63,31 @@ pub struct WeightsDoc {
     /// `J_w = Σ_g ε_g/s_g² + n_g ln s_g²` (minus twice the log-likelihood at the factors).
     pub objective: f64,
     pub groups: Vec<GroupDoc>,
+}
+
+impl WeightsDoc {
+    /// The weighting of `fit`: rescaled (and why) when `reason` is given, else stated.
+    pub fn of(fit: &Rescaled, reason: Option<String>) -> Self {
+        Self {
+            rule: if reason.is_some() {
+                "rescaled"
+            } else {
+                "stated"
+            }
+            .into(),
+            epsilon_rescaled: reason.as_ref().map(|_| fit.result.epsilon()),
+            reason,
+            objective: fit.objective,
+            groups: (fit.groups.iter())
+                .map(|g| GroupDoc {
+                    name: g.name.clone(),
+                    n: g.n,
+                    misfit: g.misfit,
+                    scale: fit.scales[g.group],
+                })
+                .collect(),
+        }
+    }
 }
 
 /// One data group: its misfit under the stated σ and the factor its σ were multiplied by.

@@ -5,7 +5,7 @@ use serde::{Deserialize, Serialize};
 use super::alerts::AlertThresholds;
 use super::drift::DriftNoise;
 use crate::core::modal::ModalError;
-use crate::core::updating::UpdateError;
+use crate::core::updating::{Pairing, UpdateError};
 
 /// Configuration of one structure's tracker (`[tracker]` of the configuration).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -45,6 +45,40 @@ pub struct TrackerConfig {
     /// every such set costs a cold, globalized restart: 12 of 600 healthy space-frame
     /// sets without bounds, none with them.
     pub bounds: Vec<f64>,
+    /// The σ a fit weighs a set by: `auto` rescales each mode's shape σ to its misfit when ε
+    /// under the stated σ ends above its χ² bound, as `update` does (the estimate's ε and
+    /// the model-inadequacy verdict stay under the stated σ); `stated` never rescales.
+    pub weights: Weights,
+    /// How measured modes are paired with model modes: `misfit` (the candidate adding least
+    /// to ε, continuous through a crossing or a veering) or `mac` (paper (29)).
+    pub pairing: PairingRule,
+}
+
+/// [`TrackerConfig::weights`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Weights {
+    #[default]
+    Auto,
+    Stated,
+}
+
+/// [`TrackerConfig::pairing`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PairingRule {
+    #[default]
+    Misfit,
+    Mac,
+}
+
+impl From<PairingRule> for Pairing {
+    fn from(p: PairingRule) -> Self {
+        match p {
+            PairingRule::Misfit => Pairing::Misfit,
+            PairingRule::Mac => Pairing::Mac,
+        }
+    }
 }
 
 impl Default for TrackerConfig {
@@ -61,6 +95,8 @@ impl Default for TrackerConfig {
             shape_weight: 1.0,
             step_tolerance: 0.5,
             bounds: vec![1e-3, 1e3],
+            weights: Weights::Auto,
+            pairing: PairingRule::Misfit,
         }
     }
 }

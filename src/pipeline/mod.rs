@@ -23,6 +23,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::contract::modal_set::{ModalSet, Rejection, ValidationContext, parse_modal_set};
 use crate::contract::stiffness::{FilteredLevel, Method, ParameterEstimate};
+use crate::contract::update::WeightsDoc;
 use crate::contract::{
     Alert, AlertDetail, AlertKind, AlertLevel, Checkpoint, EigenBlock, Estimate, ModeComparison,
     Output, Rejected, Schema, digest, finite, output_id,
@@ -30,12 +31,14 @@ use crate::contract::{
 use crate::core::model::{Model, ParameterKind};
 use crate::core::stats::{Z95, chi2_bound, chi2_dof};
 use crate::core::updating::data::RawMode;
+use crate::core::updating::strategy::rescale_reason;
+use crate::core::updating::variance::MAX_OUTER;
 use crate::core::updating::{
     Evaluator, FinalStep, MeasuredData, ModeMatching, ModeMatchingOptions, ModeMatchingResult,
     UpdateError,
 };
 use alerts::{InadequacyState, LooseningState};
-pub use config::{TrackerConfig, TrackerError};
+pub use config::{PairingRule, TrackerConfig, TrackerError, Weights};
 use drift::DriftFilter;
 use outputs::{inadequacy_message, loosening_message};
 
@@ -121,6 +124,10 @@ pub struct TrackerState {
     /// hex: JSON numbers do not hold 128 bits).
     #[serde(default, with = "digests")]
     pub seen: std::collections::VecDeque<u128>,
+    /// The data groups' σ factors of the last fit that rescaled them (the next such fit
+    /// starts from them); absent while the stated σ explain the data.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scales: Option<Vec<f64>>,
 }
 
 /// How many handled payloads the tracker remembers to recognise a re-delivery (a sensor's
@@ -200,6 +207,7 @@ impl Tracker {
             last_crosscheck: None,
             duplicates: 0,
             seen: Default::default(),
+            scales: None,
         };
         Self::with_state(model, cfg, state)
     }
@@ -254,6 +262,7 @@ impl Tracker {
         let model_channel_names = model.channels().iter().map(|c| c.name.clone()).collect();
         let mut evaluator = Evaluator::new(&model)?;
         evaluator.set_warm_start(true);
+        evaluator.set_pairing(cfg.pairing.into());
         let mm = ModeMatching::new(evaluator);
         let opts = ModeMatchingOptions {
             sigma_tol: Some(cfg.step_tolerance),
@@ -384,7 +393,7 @@ impl Tracker {
         payload: &[u8],
     ) -> Vec<Action> {
         let data = measured_data(&set, &self.model, self.cfg.shape_weight);
-        let (res, warm, fallback) = match self.fit(&data) {
+        let fit = match self.fit(&data) {
             Ok(x) => x,
             Err(e) => {
                 // The model could not be evaluated for this set (e.g. more modes than the
@@ -396,6 +405,13 @@ impl Tracker {
                 return self.reject(received, &rej, payload);
             }
         };
+        let SetFit {
+            result: res,
+            epsilon,
+            warm,
+            fallback,
+            weights,
+        } = fit;
         // Nothing non-finite enters the state, the filters or a checkpoint: a set whose
         // update gives a non-finite θ, σ or ε (extreme but finite inputs can) is rejected.
         let std = res.std();
@@ -406,7 +422,7 @@ impl Tracker {
         };
         if let Some(what) = bad("θ", &res.theta)
             .or_else(|| bad("σ", &std))
-            .or_else(|| bad("ε", &[res.epsilon()]))
+            .or_else(|| bad("ε", &[epsilon]))
         {
             let rej = Rejection {
                 field: "modes".into(),
@@ -436,7 +452,7 @@ impl Tracker {
                     .map(|i| (0..c.ncols()).map(|j| c[(i, j)]).collect())
                     .collect()
             });
-            st.epsilon = Some(res.epsilon());
+            st.epsilon = Some(epsilon);
             for (l, f) in st.filters.iter_mut().enumerate() {
                 f.observe(days, res.theta[l], std[l] * std[l]);
             }
@@ -510,11 +526,12 @@ impl Tracker {
             iterations: res.iterations,
             warm_start: warm,
             cold_start_reason: fallback,
-            epsilon: res.epsilon(),
+            epsilon,
             epsilon_bound: bound,
             temperature_c: set.temperature_c,
             parameters,
             modes,
+            weights,
         }))));
         // Alerts.
         let st = &mut self.state;
@@ -535,7 +552,7 @@ impl Tracker {
             })))
         };
         if let Some(level) = st.inadequacy.step(
-            res.epsilon(),
+            epsilon,
             chi2_dof(data.n_data(), self.model.n_params()),
             self.cfg.alerts.inadequacy_window,
             self.cfg.alerts.persistence,
@@ -545,9 +562,9 @@ impl Tracker {
                 AlertKind::ModelInadequate,
                 level,
                 None,
-                inadequacy_message(level, res.epsilon(), bound, &self.cfg.alerts),
+                inadequacy_message(level, epsilon, bound, &self.cfg.alerts),
                 AlertDetail::Inadequacy {
-                    epsilon: res.epsilon(),
+                    epsilon,
                     epsilon_bound: bound,
                     diagnosis: None,
                 },
@@ -555,7 +572,7 @@ impl Tracker {
             if level == AlertLevel::Warning {
                 actions.push(Action::Diagnose(Box::new(DiagnoseRequest {
                     set: set.clone(),
-                    epsilon: res.epsilon(),
+                    epsilon,
                     epsilon_bound: bound,
                 })));
             }
@@ -627,10 +644,52 @@ impl Tracker {
         actions
     }
 
+    /// The fit under the stated σ ([`Self::fit_stated`]), refitted with each mode's shape
+    /// σ rescaled to its misfit when its ε ends above the χ² bound (`tracker.weights =
+    /// "auto"`: the rule of `update`, [`crate::core::updating::variance`]). The rescaled fit
+    /// starts from the last such fit's factors; one that fails or does not converge leaves
+    /// the stated fit in place.
+    fn fit(&mut self, data: &MeasuredData) -> Result<SetFit, UpdateError> {
+        let (stated, warm, fallback) = self.fit_stated(data)?;
+        let bound = chi2_bound(data.n_data(), self.model.n_params());
+        let epsilon = stated.epsilon();
+        let plain = |result| SetFit {
+            result,
+            epsilon,
+            warm,
+            fallback: fallback.clone(),
+            weights: None,
+        };
+        if self.cfg.weights == Weights::Stated || epsilon <= bound || !stated.converged() {
+            self.state.scales = None;
+            return Ok(plain(stated));
+        }
+        let start = match &self.state.scales {
+            Some(s) if s.len() == data.n_groups() => s.clone(),
+            _ => vec![1.0; data.n_groups()],
+        };
+        let theta = stated.theta.clone();
+        let rescaled =
+            self.mm
+                .run_rescaled(&self.model, data, &theta, &start, &self.opts, MAX_OUTER);
+        let Some(fit) = rescaled.ok().filter(|f| f.result.converged()) else {
+            self.state.scales = None;
+            return Ok(plain(stated));
+        };
+        self.state.scales = Some(fit.scales.clone());
+        Ok(SetFit {
+            epsilon: fit.stated_epsilon,
+            warm,
+            weights: Some(WeightsDoc::of(&fit, Some(rescale_reason(epsilon, bound)))),
+            fallback,
+            result: fit.result,
+        })
+    }
+
     /// Warm start from the last θ; a cold, globalized start from the baseline (or the
     /// nominal θ) on the first set or when the warm fit fails. Returns the fit, whether it
     /// was warm, and why a cold start was needed.
-    fn fit(
+    fn fit_stated(
         &mut self,
         data: &MeasuredData,
     ) -> Result<(ModeMatchingResult, bool, Option<String>), UpdateError> {
@@ -698,6 +757,20 @@ impl Tracker {
             )
         })
     }
+}
+
+/// A set's fit as the tracker reports it.
+struct SetFit {
+    /// Under the rescaled σ when `weights` is set, else under the stated σ.
+    result: ModeMatchingResult,
+    /// ε (5) under the set's stated σ at the fit.
+    epsilon: f64,
+    /// Warm-started from the last θ.
+    warm: bool,
+    /// Why a cold start was needed.
+    fallback: Option<String>,
+    /// The rescaled weighting, when the fit used one.
+    weights: Option<WeightsDoc>,
 }
 
 /// The updating data of a validated set: channels mapped onto the model, `null` entries

@@ -93,14 +93,9 @@ pub fn update(
         _ if kappa => None,
         WeightsPolicy::Stated => None,
         WeightsPolicy::Rescaled => Some("requested".to_string()),
-        WeightsPolicy::Auto => (first.epsilon() > bound).then(|| {
-            format!(
-                "under the stated σ the fit ends at ε = {:.1}, above its χ² bound {bound:.1}: \
-                 the σ of each mode's shape that misfits beyond them are scaled to its misfit \
-                 (the frequencies keep theirs)",
-                first.epsilon()
-            )
-        }),
+        WeightsPolicy::Auto => {
+            (first.epsilon() > bound).then(|| rescale_reason(first.epsilon(), bound))
+        }
     };
     let search = match policy.search {
         _ if kappa => None,
@@ -141,6 +136,16 @@ pub fn update(
         start,
         search: Some((found, why)),
     })
+}
+
+/// Why a fit that ended at `epsilon` under the stated σ, above its χ² `bound`, is redone
+/// with the σ rescaled ([`super::variance`]).
+pub fn rescale_reason(epsilon: f64, bound: f64) -> String {
+    format!(
+        "under the stated σ the fit ends at ε = {epsilon:.1}, above its χ² bound {bound:.1}: \
+         the σ of each mode's shape that misfits beyond them are scaled to its misfit \
+         (the frequencies keep theirs)"
+    )
 }
 
 /// Why the fit from θ0 calls for a global search, if it does.
