@@ -95,8 +95,6 @@ pub fn simulated_data(
     simulated_measured_data(model, theta, n_modes, stated, noisy, seed).unwrap()
 }
 
-/// A Python virtual environment `target/<name>` (made once per target directory) in which
-/// `import_check` runs; `packages` are pip-installed into it when it does not.
 /// Runs `program` with `args` to completion as a whole process: its wall time in seconds
 /// and its standard output. Panics, with its standard error, if it fails.
 pub fn run_timed(program: &str, args: &[&str]) -> (f64, Vec<u8>) {
@@ -114,6 +112,8 @@ pub fn run_timed(program: &str, args: &[&str]) -> (f64, Vec<u8>) {
     (secs, out.stdout)
 }
 
+/// A Python virtual environment `target/<name>` (made once per target directory) in which
+/// `import_check` runs; `packages` are pip-installed into it when it does not.
 pub fn python_venv(name: &str, import_check: &str, packages: &[&str]) -> std::path::PathBuf {
     use std::process::Command;
     let target = std::env::current_exe()
