@@ -300,7 +300,13 @@ pub fn diagnose(
                     .filter(|&(k, _)| k != i)
                     .map(|(_, n)| n.refit.clone())
                     .collect();
-                let (eps_without, _) = reprofile(spec, &effects, &mut others, data, &theta)?;
+                // An effect another one depends on (a splice whose node carries a named
+                // mass) is not withdrawn alone.
+                let eps_without = match reprofile(spec, &effects, &mut others, data, &theta) {
+                    Ok((e, _)) => e,
+                    Err(DiagnosisError::Location(_)) => continue,
+                    Err(e) => return Err(e),
+                };
                 let lr = eps_without - f.result.epsilon();
                 if lr <= threshold && weakest.as_ref().is_none_or(|w| lr < w.1) {
                     weakest = Some((i, lr, others));
@@ -352,7 +358,12 @@ pub fn diagnose(
                     .filter(|&(k, _)| k != i)
                     .map(|(_, n)| n.refit.clone())
                     .collect();
-                reprofile(spec, &effects, &mut others, data, &f.result.theta)?.0
+                match reprofile(spec, &effects, &mut others, data, &f.result.theta) {
+                    Ok((e, _)) => e,
+                    // The others need it (as above): its evidence stays as named.
+                    Err(DiagnosisError::Location(_)) => continue,
+                    Err(e) => return Err(e),
+                }
             };
             let lr = eps_without - after.epsilon;
             let n = &mut named[i];

@@ -120,6 +120,8 @@ pub(super) fn with_effects(
 
 /// One pass of coordinate descent over the values of `set`: each effect's value refitted
 /// (profile) with the others at theirs. Returns ε of `spec` with the set at its new values.
+/// An effect another one of the set depends on (a splice whose new node carries a named
+/// mass) keeps its value: the model without it cannot be built.
 pub(super) fn reprofile(
     spec: &Description,
     effects: &[Box<dyn Effect>],
@@ -135,7 +137,11 @@ pub(super) fn reprofile(
             .filter(|&(k, _)| k != i)
             .map(|(_, r)| r)
             .collect();
-        let without = with_effects(spec, effects, &others)?;
+        let without = match with_effects(spec, effects, &others) {
+            Ok(s) => s,
+            Err(DiagnosisError::Location(_)) => continue,
+            Err(e) => return Err(e),
+        };
         let c = Candidate {
             effect: set[i].effect,
             location: set[i].location.clone(),
@@ -158,4 +164,59 @@ pub(super) fn effect_of<'a>(effects: &'a [Box<dyn Effect>], kind: &str) -> &'a d
         .find(|e| e.kind() == kind)
         .expect("an effect of the catalogue")
         .as_ref()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::simulate::{Noise, simulated_measured_data};
+
+    fn named(effect: &'static str, location: &str, u: f64) -> Refit {
+        Refit {
+            effect,
+            unit: "",
+            location: location.into(),
+            u,
+            std_u: f64::NAN,
+            value: u,
+            std: f64::NAN,
+            epsilon: f64::NAN,
+            theta: Vec::new(),
+        }
+    }
+
+    /// A splice of B2 at its second mesh node and a mass on the node its first part then
+    /// has (`B2~a.1`, which exists only with the splice): the mass is refitted, the splice
+    /// keeps its value (the model without it cannot carry the mass), and the pass does not
+    /// fail. Before, the whole diagnosis failed with "`B2~a.1` is not a free node".
+    #[test]
+    fn an_effect_another_depends_on_keeps_its_value() {
+        let text = std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/config/models/lab-frame.toml"
+        ))
+        .unwrap();
+        let spec = Description::File(toml::from_str(&text).unwrap());
+        let effects = effects::catalogue();
+        let mut set = vec![
+            named("splice", "B2.2", 2e4),
+            named("added-mass", "B2~a.1", 0.2),
+        ];
+        let with = with_effects(&spec, &effects, &set.iter().collect::<Vec<_>>()).unwrap();
+        let model = with.build().unwrap();
+        let theta = model.nominal_theta();
+        let noise = Noise {
+            frequency_cov: 0.01,
+            shape_nsd: 0.05,
+        };
+        let data = simulated_measured_data(&model, &theta, 9, noise, true, 1).unwrap();
+        let (eps, _) = reprofile(&spec, &effects, &mut set, &data, &theta).unwrap();
+        assert!(eps.is_finite());
+        assert_eq!(set[0].u, 2e4, "the splice keeps its value");
+        assert!(
+            set[1].std.is_finite(),
+            "the mass was refitted: {:?}",
+            set[1]
+        );
+    }
 }
