@@ -10,14 +10,15 @@ use super::write_json;
 use crate::core::oma::Record;
 use crate::core::oma::identify::{IdentifyOptions, identify};
 use crate::core::oma::track::{Gate, ModeTrack};
-use crate::io::record::read_csv;
+use crate::io::record::read_record;
 use crate::pipeline::accel::{label, modal_set};
 
 #[derive(Debug, clap::Args)]
 pub struct IdentifyArgs {
-    /// Record: CSV with a header `time_s,<channel>,…`, uniformly sampled (a sidecar
-    /// FILE.json may give rate_hz, unit or units, structure, channels, start), or an MCAP
-    /// recording of boltwatch.accel.v1 blocks (`.mcap`).
+    /// Record: CSV with a header `time_s,<channel>,…`, uniformly sampled, or a NumPy `.npy`
+    /// array (samples × channels; its sidecar gives rate_hz), each with an optional sidecar
+    /// FILE.json (rate_hz, unit or units, structure, channels, start); or an MCAP recording
+    /// of boltwatch.accel.v1 blocks (`.mcap`).
     #[arg(long)]
     pub input: PathBuf,
     /// Output: one boltwatch.modal_set.v1, or a list of them with --window.
@@ -52,7 +53,7 @@ pub fn run(args: &IdentifyArgs) -> Result<()> {
     if args.input.extension().is_some_and(|e| e == "mcap") {
         return run_mcap(args);
     }
-    let file = read_csv(&args.input)?;
+    let file = read_record(&args.input)?;
     let record = &file.record;
     let mut track = ModeTrack::new(Gate::default());
     let structure = match &args.model {

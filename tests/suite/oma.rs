@@ -732,3 +732,57 @@ fn identify_reads_accel_recordings() {
         "{err}"
     );
 }
+
+/// `.npy` bytes (format 1.0) of a float64 array of `shape` in Fortran (column-major) order.
+fn npy_fortran(shape: (usize, usize), column_major: &[f64]) -> Vec<u8> {
+    let mut header = format!(
+        "{{'descr': '<f8', 'fortran_order': True, 'shape': ({}, {}), }}",
+        shape.0, shape.1
+    );
+    while (10 + header.len() + 1) % 64 != 0 {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut out = b"\x93NUMPY\x01\x00".to_vec();
+    out.extend((header.len() as u16).to_le_bytes());
+    out.extend(header.as_bytes());
+    for v in column_major {
+        out.extend(v.to_le_bytes());
+    }
+    out
+}
+
+/// A `.npy` record in Fortran order, its sidecar naming two of three columns (`null`
+/// leaves the middle one out) in mixed units: the samples land in their rows and columns,
+/// converted to SI. Without `rate_hz` the file is refused, saying the sidecar must give it.
+#[test]
+fn a_npy_record_reads_with_its_sidecar() {
+    use boltwatch::core::oma::Quantity;
+    let dir = std::env::temp_dir().join(format!("bw-oma-npy-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let npy = dir.join("rec.npy");
+    // Column c, sample k: 10·c + k.
+    let values: Vec<f64> = (0..3)
+        .flat_map(|c| (0..4).map(move |k| (10 * c + k) as f64))
+        .collect();
+    std::fs::write(&npy, npy_fortran((4, 3), &values)).unwrap();
+    let err = boltwatch::io::record::read_record(&npy)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("must give rate_hz"), "{err}");
+    std::fs::write(
+        dir.join("rec.json"),
+        r#"{"rate_hz": 100, "units": ["mm/s", "g", "m/s^2"], "channels": ["a", null, "c"]}"#,
+    )
+    .unwrap();
+    let rec = boltwatch::io::record::read_record(&npy).unwrap().record;
+    let _ = std::fs::remove_dir_all(&dir);
+    assert_eq!(rec.channels, ["a", "c"]);
+    assert_eq!(rec.rate_hz, 100.0);
+    assert_eq!(rec.quantities, [Quantity::Velocity, Quantity::Acceleration]);
+    assert_eq!(rec.samples.nrows(), 4);
+    for k in 0..4 {
+        assert_eq!(rec.samples[(k, 0)], k as f64 * 1e-3);
+        assert_eq!(rec.samples[(k, 1)], (20 + k) as f64);
+    }
+}
