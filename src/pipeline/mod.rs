@@ -411,6 +411,7 @@ impl Tracker {
             warm,
             fallback,
             weights,
+            scales,
         } = fit;
         // Nothing non-finite enters the state, the filters or a checkpoint: a set whose
         // update gives a non-finite θ, σ or ε (extreme but finite inputs can) is rejected.
@@ -434,6 +435,7 @@ impl Tracker {
         }
         let mut actions = Vec::new();
         let st = &mut self.state;
+        st.scales = scales;
         st.accepted += 1;
         st.last_time = Some(set.time);
         let origin = *st.origin.get_or_insert(set.time);
@@ -659,28 +661,31 @@ impl Tracker {
             warm,
             fallback: fallback.clone(),
             weights: None,
+            scales: None,
         };
         if self.cfg.weights == Weights::Stated || epsilon <= bound || !stated.converged() {
-            self.state.scales = None;
             return Ok(plain(stated));
         }
         let start = match &self.state.scales {
             Some(s) if s.len() == data.n_groups() => s.clone(),
             _ => vec![1.0; data.n_groups()],
         };
-        let theta = stated.theta.clone();
-        let rescaled =
-            self.mm
-                .run_rescaled(&self.model, data, &theta, &start, &self.opts, MAX_OUTER);
+        let rescaled = self.mm.run_rescaled(
+            &self.model,
+            data,
+            &stated.theta,
+            &start,
+            &self.opts,
+            MAX_OUTER,
+        );
         let Some(fit) = rescaled.ok().filter(|f| f.result.converged()) else {
-            self.state.scales = None;
             return Ok(plain(stated));
         };
-        self.state.scales = Some(fit.scales.clone());
         Ok(SetFit {
             epsilon: fit.stated_epsilon,
             warm,
             weights: Some(WeightsDoc::of(&fit, Some(rescale_reason(epsilon, bound)))),
+            scales: Some(fit.scales),
             fallback,
             result: fit.result,
         })
@@ -771,6 +776,8 @@ struct SetFit {
     fallback: Option<String>,
     /// The rescaled weighting, when the fit used one.
     weights: Option<WeightsDoc>,
+    /// Its factors, the next rescaled fit's start; stored only once the set is accepted.
+    scales: Option<Vec<f64>>,
 }
 
 /// The updating data of a validated set: channels mapped onto the model, `null` entries
