@@ -201,7 +201,7 @@ fn draw_figure<DB: DrawingBackend>(
 }
 
 /// Registers DejaVu Sans as plotters' `sans-serif` (once per process).
-fn register_fonts() {
+pub(crate) fn register_fonts() {
     static FONTS: Once = Once::new();
     FONTS.call_once(|| {
         for (style, bytes) in [
@@ -459,7 +459,7 @@ enum Key {
 
 /// plotters-svg writes each text as `<text …>`, the text, `</text>` on three lines; this puts
 /// them on one (`<text …>label</text>`), as the hand-written SVG had it.
-fn inline_text(svg: &str) -> String {
+pub(crate) fn inline_text(svg: &str) -> String {
     let mut out = String::with_capacity(svg.len());
     let mut in_text = false;
     for line in svg.lines() {

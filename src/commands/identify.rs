@@ -8,7 +8,8 @@ use chrono::{DateTime, Utc};
 
 use super::write_json;
 use crate::core::oma::Record;
-use crate::core::oma::identify::{IdentifyOptions, identify};
+use crate::core::oma::identify::{IdentifyOptions, identify_all};
+use crate::core::oma::settings::Settings;
 use crate::core::oma::track::{Gate, ModeTrack};
 use crate::io::record::read_record;
 use crate::pipeline::accel::{label, modal_set};
@@ -28,15 +29,23 @@ pub struct IdentifyArgs {
     /// own (the remainder shorter than a window is left out and reported).
     #[arg(long)]
     pub window: Option<f64>,
-    /// Largest model order of the stabilization diagram (orders 2, 4, …).
-    #[arg(long, default_value_t = 80)]
-    pub order_max: usize,
+    /// Largest model order of the stabilization diagram (orders 2, 4, …; default: from
+    /// the peaks of the record's spectrum).
+    #[arg(long)]
+    pub order_max: Option<usize>,
     /// Frequency band of interest, `lo,hi` in Hz (default: 0 to 0.45 of the sampling rate).
     #[arg(long)]
     pub band: Option<String>,
-    /// Block rows of the Hankel matrix (lags up to 2s − 1 samples).
-    #[arg(long, default_value_t = 40)]
-    pub block_rows: usize,
+    /// Block rows of the Hankel matrix (lags up to 2s − 1 samples; default: the lags span
+    /// two periods of the lowest frequency of interest).
+    #[arg(long)]
+    pub block_rows: Option<usize>,
+    /// Decimation factor (default: from the band's top; 1 turns it off).
+    #[arg(long)]
+    pub decimate: Option<usize>,
+    /// Write the stabilization diagram (PNG and SVG) and its poles (CSV) to this folder.
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
     /// Blocks the record (or window) is cut into for the uncertainties.
     #[arg(long, default_value_t = 30)]
     pub blocks: usize,
@@ -56,6 +65,7 @@ pub fn run(args: &IdentifyArgs) -> Result<()> {
     let file = read_record(&args.input)?;
     let record = &file.record;
     let mut track = ModeTrack::new(Gate::default());
+    let mut opts = IdentifyOptions::default();
     let structure = match &args.model {
         Some(path) => {
             let (_, model) = super::load_description(path)?;
@@ -86,6 +96,7 @@ pub fn run(args: &IdentifyArgs) -> Result<()> {
             };
             track = ModeTrack::from_model(&model, hi, Gate::default())
                 .with_context(|| format!("the modes of model `{}`", model.name))?;
+            opts.requested.model_lowest_hz = track.refs.first().map(|r| r.frequency_hz);
             model.name.clone()
         }
         None => file.sidecar.structure.clone().unwrap_or_else(|| {
@@ -102,14 +113,11 @@ pub fn run(args: &IdentifyArgs) -> Result<()> {
         (None, None) => DateTime::from_timestamp_millis((file.t0_s * 1000.0).round() as i64)
             .context("the time column's first value is not a time")?,
     };
-    let mut opts = IdentifyOptions::default();
-    opts.ssi.order_max = args.order_max;
-    opts.ssi.block_rows = args.block_rows;
+    opts.requested.order_max = args.order_max;
+    opts.requested.block_rows = args.block_rows;
+    opts.requested.decimate = args.decimate;
+    opts.requested.band_hz = args.band.as_deref().map(parse_band).transpose()?;
     opts.blocks = args.blocks;
-    opts.criteria.band_hz = match &args.band {
-        Some(b) => parse_band(b)?,
-        None => (0.0, 0.45 * record.rate_hz),
-    };
     let window = match args.window {
         None => record.len(),
         Some(w) if w > 0.0 && w.is_finite() => (w * record.rate_hz).round() as usize,
@@ -131,14 +139,26 @@ pub fn run(args: &IdentifyArgs) -> Result<()> {
             samples: record.samples.subrows(w * window, window).to_owned(),
             quantities: record.quantities.clone(),
         };
-        let modes = identify(&part, &opts).with_context(|| {
-            format!(
-                "{}: window {} ({:.3} s from the start)",
-                args.input.display(),
-                w + 1,
-                (w * window) as f64 / record.rate_hz
-            )
-        })?;
+        let what = format!(
+            "{}: window {} ({:.3} s from the start)",
+            args.input.display(),
+            w + 1,
+            (w * window) as f64 / record.rate_hz
+        );
+        let found = identify_all(&part, &opts).with_context(|| what.clone())?;
+        if w == 0 {
+            print_settings(&found.settings, &part);
+        }
+        if let Some(dir) = &args.plot {
+            let name = if n_windows == 1 {
+                "stabilization".to_string()
+            } else {
+                format!("stabilization-{}", w + 1)
+            };
+            super::identify_plot::write(dir, &name, &found)
+                .with_context(|| format!("{what}: the stabilization diagram"))?;
+        }
+        let modes = &found.modes;
         let time = start
             + chrono::TimeDelta::microseconds(
                 ((w * window) as f64 / record.rate_hz * 1e6).round() as i64
@@ -147,7 +167,7 @@ pub fn run(args: &IdentifyArgs) -> Result<()> {
             &structure,
             time,
             &record.channels,
-            &modes,
+            modes,
             format!("boltwatch identify {} (SSI-COV)", args.input.display()),
         );
         label(&mut set, &mut track);
@@ -171,6 +191,12 @@ pub fn run(args: &IdentifyArgs) -> Result<()> {
                 .join(", "),
             missing_note(&set)
         );
+        for p in &found.unexplained_peaks {
+            println!(
+                "  a peak of the spectrum at {:.3} Hz ({:.1} dB) is explained by no mode",
+                p.frequency_hz, p.prominence_db
+            );
+        }
         sets.push(set.to_json());
     }
     let left = record.len() - n_windows * window;
@@ -188,6 +214,38 @@ pub fn run(args: &IdentifyArgs) -> Result<()> {
     write_json(&args.out, &out)?;
     println!("written: {}", args.out.display());
     Ok(())
+}
+
+/// The settings derived from the record, one line per sub-band.
+fn print_settings(s: &Settings, record: &Record) {
+    let names: Vec<&str> = s
+        .references
+        .iter()
+        .map(|&j| record.channels[j].as_str())
+        .collect();
+    println!(
+        "settings: {} channels at {} Hz, references {}; {} peaks in the spectrum",
+        record.channels.len(),
+        record.rate_hz,
+        names.join(","),
+        s.peaks.len()
+    );
+    for b in &s.bands {
+        println!(
+            "  {:.2}–{:.2} Hz: decimate {} (to {} Hz), block rows {} (lags span {:.2} s; lowest frequency {} from {}), orders up to {}, {} peaks",
+            b.band_hz.0,
+            b.band_hz.1,
+            b.decimate,
+            b.rate_hz,
+            b.block_rows,
+            (2 * b.block_rows - 1) as f64 / b.rate_hz,
+            b.lowest_hz
+                .map_or("none".to_string(), |f| format!("{f:.3} Hz")),
+            b.lowest_from,
+            b.order_max,
+            b.peaks
+        );
+    }
 }
 
 /// `; missing: mode 10, …` for a set that lists missing modes, else nothing.
@@ -287,6 +345,7 @@ fn run_mcap(args: &IdentifyArgs) -> Result<()> {
         window_s,
         order_max: args.order_max,
         block_rows: args.block_rows,
+        decimate: args.decimate,
         blocks: args.blocks,
         band_hz: match &args.band {
             Some(b) => {

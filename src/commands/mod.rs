@@ -4,6 +4,7 @@ pub mod bayes;
 pub mod diagnose;
 pub mod export;
 pub mod identify;
+pub mod identify_plot;
 pub mod inputs;
 pub mod modes;
 pub mod progress;

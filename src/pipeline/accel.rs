@@ -36,10 +36,15 @@ use serde::{Deserialize, Serialize};
 pub struct IdentifySettings {
     /// Window length, s: one modal set per window.
     pub window_s: f64,
-    /// Largest model order of the stabilization diagram.
-    pub order_max: usize,
-    /// Block rows of the Hankel matrix.
-    pub block_rows: usize,
+    /// Largest model order of the stabilization diagram (absent: from the record).
+    #[serde(default)]
+    pub order_max: Option<usize>,
+    /// Block rows of the Hankel matrix (absent: from the record).
+    #[serde(default)]
+    pub block_rows: Option<usize>,
+    /// Decimation factor (absent: from the band's top; 1: none).
+    #[serde(default)]
+    pub decimate: Option<usize>,
     /// Blocks a window is cut into for the uncertainties.
     pub blocks: usize,
     /// Band of interest `[lo, hi]`, Hz (empty: 0 to 0.45 of the sampling rate).
@@ -52,8 +57,12 @@ impl IdentifySettings {
         if !(self.window_s.is_finite() && self.window_s > 0.0) {
             anyhow::bail!("{key}.window_s: {} must be > 0", self.window_s);
         }
-        if self.order_max < 2 || self.block_rows < 2 || self.blocks < 2 {
+        let too_small = |v: Option<usize>| v.is_some_and(|v| v < 2);
+        if too_small(self.order_max) || too_small(self.block_rows) || self.blocks < 2 {
             anyhow::bail!("{key}: order_max, block_rows and blocks must be at least 2");
+        }
+        if self.decimate == Some(0) {
+            anyhow::bail!("{key}.decimate: must be at least 1 (1: no decimation)");
         }
         match self.band_hz[..] {
             [] => {}
@@ -69,13 +78,15 @@ impl IdentifySettings {
     /// The identification options at sampling rate `rate_hz`.
     pub fn options(&self, rate_hz: f64) -> IdentifyOptions {
         let mut o = IdentifyOptions::default();
-        o.ssi.order_max = self.order_max;
-        o.ssi.block_rows = self.block_rows;
+        o.requested.order_max = self.order_max;
+        o.requested.block_rows = self.block_rows;
+        o.requested.decimate = self.decimate;
         o.blocks = self.blocks;
-        o.criteria.band_hz = match self.band_hz[..] {
-            [lo, hi] => (lo, hi),
-            _ => (0.0, 0.45 * rate_hz),
+        o.requested.band_hz = match self.band_hz[..] {
+            [lo, hi] => Some((lo, hi)),
+            _ => None,
         };
+        let _ = rate_hz;
         o
     }
 }
@@ -278,7 +289,10 @@ impl AccelFront {
         let when = crate::contract::rfc3339(start);
         match identify(record, &opts) {
             Ok(modes) if !modes.is_empty() => {
-                let band_hi = opts.criteria.band_hz.1;
+                let band_hi = opts
+                    .requested
+                    .band_hz
+                    .map_or(0.45 * record.rate_hz, |b| b.1);
                 let model = self.model.clone();
                 let track = self.track.get_or_insert_with(|| {
                     model
@@ -425,8 +439,9 @@ mod tests {
             &["a".into(), "b".into(), "c".into()],
             IdentifySettings {
                 window_s: 60.0,
-                order_max: 8,
-                block_rows: 10,
+                order_max: Some(8),
+                block_rows: Some(10),
+                decimate: None,
                 blocks: 10,
                 band_hz: vec![],
             },

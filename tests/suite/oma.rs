@@ -786,3 +786,48 @@ fn a_npy_record_reads_with_its_sidecar() {
         assert_eq!(rec.samples[(k, 1)], (20 + k) as f64);
     }
 }
+
+/// The measured bolted frame of pyOMA (`tests/data/pyoma-frame`, 5 channels of velocity
+/// and acceleration at 256 Hz, 240 s, damping about 0.2 %): with default settings every
+/// mode its authors list (their merged means over 14 setups) is found within 1 % in each
+/// of the three setups, and no prominent peak of the spectrum is left unexplained. 1 %: the
+/// issue's bar; the largest error measured is 0.2 % (1.230 against 1.228 Hz).
+#[test]
+fn every_mode_the_authors_list_is_found_in_the_measured_frame() {
+    use boltwatch::core::oma::identify::{IdentifyOptions, identify_all};
+    let dir = format!("{}/tests/data/pyoma-frame", env!("CARGO_MANIFEST_DIR"));
+    let authors: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(format!("{dir}/authors-modes.json")).unwrap(),
+    )
+    .unwrap();
+    let merged: Vec<f64> = authors["merged"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|m| m["frequency_hz"].as_f64().unwrap())
+        .collect();
+    assert_eq!(merged.len(), 11);
+    for setup in 1..=3 {
+        let path = std::path::PathBuf::from(format!("{dir}/setup{setup}/record.npy"));
+        let record = boltwatch::io::record::read_record(&path).unwrap().record;
+        let found = identify_all(&record, &IdentifyOptions::default()).unwrap();
+        for &f in &merged {
+            let best = found
+                .modes
+                .iter()
+                .map(|m| m.frequency_hz)
+                .min_by(|a, b| (a / f - 1.0).abs().total_cmp(&(b / f - 1.0).abs()))
+                .unwrap();
+            println!(
+                "setup {setup}: authors {f:.4} Hz, ours {best:.4} Hz ({:+.3} %)",
+                100.0 * (best / f - 1.0)
+            );
+            assert!((best / f - 1.0).abs() < 0.01, "setup {setup}: {f:.4} Hz");
+        }
+        assert!(
+            found.unexplained_peaks.is_empty(),
+            "setup {setup}: {:?}",
+            found.unexplained_peaks
+        );
+    }
+}

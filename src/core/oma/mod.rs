@@ -13,7 +13,10 @@
 //! * [`synth`]: records simulated from a model (modal superposition under random forces,
 //!   modal damping, sensor noise), the exact truth the tests and `scenario` need.
 
+pub mod decimate;
 pub mod identify;
+pub mod settings;
+pub mod spectrum;
 pub mod ssi;
 pub mod stabilize;
 pub mod synth;
