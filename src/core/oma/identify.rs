@@ -153,7 +153,10 @@ fn identify_band(
     let mut noise_hz = Vec::new();
     for m in &selection.modes {
         let mode = with_uncertainty(m, &sens, &mut solves)?;
-        if is_noise(&mode, m.frequency_spread) {
+        if std::env::var("BW_DBG").is_ok() {
+            eprintln!("MODE {:.4} cov_f {:.2e} zeta {:.4} szeta {:.4} members {}/{} spread {:.2e} mpc {:.3}", mode.frequency_hz, mode.frequency_std/mode.frequency_hz, mode.damping, mode.damping_std, mode.members, poles.orders.len(), m.frequency_spread, m.mpc);
+        }
+        if is_noise(&mode, m) {
             tracing::debug!(
                 f = mode.frequency_hz,
                 cov_f = mode.frequency_std / mode.frequency_hz,
@@ -244,11 +247,14 @@ fn with_uncertainty(
     })
 }
 
-/// The noise rule ([`NOISE_FREQUENCY_COV`], [`NOISE_SPREAD`]).
-fn is_noise(m: &IdentifiedMode, spread: f64) -> bool {
-    m.damping_std >= m.damping
-        && m.frequency_std >= NOISE_FREQUENCY_COV * m.frequency_hz
-        && spread >= NOISE_SPREAD
+/// The noise rule: a mode whose damping and frequency are not resolved
+/// ([`NOISE_FREQUENCY_COV`]) is noise when its poles scatter across orders
+/// ([`NOISE_SPREAD`]) or when its cluster was kept only for its share of the orders
+/// ([`super::stabilize::SURE_SHARE`]).
+fn is_noise(m: &IdentifiedMode, cluster: &super::stabilize::SelectedMode) -> bool {
+    let unresolved =
+        m.damping_std >= m.damping && m.frequency_std >= NOISE_FREQUENCY_COV * m.frequency_hz;
+    unresolved && (cluster.frequency_spread >= NOISE_SPREAD || !cluster.well_populated)
 }
 
 /// The peaks of the spectrum that no mode explains: none of the modes lies within its
