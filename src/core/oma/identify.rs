@@ -153,9 +153,6 @@ fn identify_band(
     let mut noise_hz = Vec::new();
     for m in &selection.modes {
         let mode = with_uncertainty(m, &sens, &mut solves)?;
-        if std::env::var("BW_DBG").is_ok() {
-            eprintln!("MODE {:.4} cov_f {:.2e} zeta {:.4} szeta {:.4} members {}/{} spread {:.2e} mpc {:.3}", mode.frequency_hz, mode.frequency_std/mode.frequency_hz, mode.damping, mode.damping_std, mode.members, poles.orders.len(), m.frequency_spread, m.mpc);
-        }
         if is_noise(&mode, m) {
             tracing::debug!(
                 f = mode.frequency_hz,

@@ -86,11 +86,20 @@ pub fn accelerations(
             }
         })
         .collect();
+    let names: Vec<String> = channels.iter().map(|c| c.name.clone()).collect();
+    Ok(from_modes(modes, names, opts))
+}
+
+/// A record of `modes` (each with its own damping; shapes one entry per channel of
+/// `channels`) under white modal forces, as [`accelerations`] simulates a model's:
+/// `opts.damping` and `opts.max_frequency_hz` are not used.
+pub fn from_modes(modes: Vec<TrueMode>, channels: Vec<String>, opts: &SynthOptions) -> Synthesized {
+    let fs = opts.rate_hz;
     let m = modes.len();
     let dt = 1.0 / fs;
     let slowest = modes
         .iter()
-        .map(|md| zeta * 2.0 * std::f64::consts::PI * md.frequency_hz)
+        .map(|md| md.damping * 2.0 * std::f64::consts::PI * md.frequency_hz)
         .fold(f64::INFINITY, f64::min);
     let burn = (10.0 / slowest / dt).ceil() as usize;
     let samples = (opts.duration_s * fs).round() as usize;
@@ -112,14 +121,17 @@ pub fn accelerations(
     };
     let steps: Vec<[f64; 6]> = modes
         .iter()
-        .map(|md| zoh_step(2.0 * std::f64::consts::PI * md.frequency_hz, zeta, dt))
+        .map(|md| zoh_step(2.0 * std::f64::consts::PI * md.frequency_hz, md.damping, dt))
         .collect();
     let mut state = vec![(0.0_f64, 0.0_f64); m];
     for k in 0..burn + samples {
         for (j, st) in state.iter_mut().enumerate() {
             let p = unit.sample(&mut rng);
             let [a00, a01, a10, a11, b0, b1] = steps[j];
-            let w = 2.0 * std::f64::consts::PI * modes[j].frequency_hz;
+            let (w, zeta) = (
+                2.0 * std::f64::consts::PI * modes[j].frequency_hz,
+                modes[j].damping,
+            );
             if k >= burn {
                 qdd[(k - burn, j)] = p - w * w * st.0 - 2.0 * zeta * w * st.1;
                 if lower {
@@ -154,15 +166,15 @@ pub fn accelerations(
             }
         }
     }
-    Ok(Synthesized {
+    Synthesized {
         record: Record {
-            channels: channels.iter().map(|c| c.name.clone()).collect(),
+            quantities: (0..channels.len()).map(quantity).collect(),
+            channels,
             rate_hz: fs,
             samples: y,
-            quantities: (0..channels.len()).map(quantity).collect(),
         },
         modes,
-    })
+    }
 }
 
 /// The lowest modes of `model` at θ, enough to pass `f_max` (or every mode it has): 12,
