@@ -6,6 +6,9 @@
 //!   standard deviations (30 blocks), the default options;
 //! - `csv_and_identify`: both, the target (< 2 s on two cores).
 //!
+//! And `identify_240s_6ch_256hz`: a record the size of the measured frame in
+//! `tests/data/pyoma-frame` (target < 0.5 s).
+//!
 //! `cargo bench --bench identify`.
 
 use std::hint::black_box;
@@ -13,7 +16,7 @@ use std::hint::black_box;
 use boltwatch::core::model::Model;
 use boltwatch::core::model::spec::ModelSpec;
 use boltwatch::core::oma::identify::{IdentifyOptions, identify};
-use boltwatch::core::oma::synth::{SynthOptions, accelerations};
+use boltwatch::core::oma::synth::{SynthOptions, TrueMode, accelerations, from_modes};
 use boltwatch::io::record::{read_csv, write_csv};
 use criterion::{Criterion, criterion_group, criterion_main};
 
@@ -62,5 +65,43 @@ fn bench_identify(c: &mut Criterion) {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-criterion_group!(benches, bench_identify);
+/// A 240-s record of 6 channels at 256 Hz with nine modes of 0.2 % damping from 1.1 to
+/// 14.6 Hz (the size of the measured frame in `tests/data/pyoma-frame`): the whole
+/// identification with settings from the record (target < 0.5 s).
+fn bench_few_channels(c: &mut Criterion) {
+    let freqs = [1.1, 2.3, 3.9, 5.6, 7.4, 7.7, 12.2, 12.7, 14.6];
+    let modes: Vec<TrueMode> = freqs
+        .iter()
+        .enumerate()
+        .map(|(k, &f)| TrueMode {
+            frequency_hz: f,
+            damping: 0.002,
+            shape: (0..6)
+                .map(|c| ((k + 1) as f64 * (c + 1) as f64 * 0.7 + k as f64).sin())
+                .collect(),
+        })
+        .collect();
+    let sim = from_modes(
+        modes,
+        (1..=6).map(|c| format!("ch{c}")).collect(),
+        &SynthOptions {
+            rate_hz: 256.0,
+            duration_s: 240.0,
+            damping: 0.002,
+            max_frequency_hz: None,
+            noise_rel: 0.02,
+            seed: 11,
+            quantities: vec![],
+        },
+    );
+    let opts = IdentifyOptions::default();
+    let mut g = c.benchmark_group("identify_240s_6ch_256hz");
+    g.sample_size(10);
+    g.bench_function("identify", |b| {
+        b.iter(|| black_box(identify(&sim.record, &opts).unwrap()))
+    });
+    g.finish();
+}
+
+criterion_group!(benches, bench_identify, bench_few_channels);
 criterion_main!(benches);

@@ -294,6 +294,7 @@ impl Scenario {
                     self.name, self.seed
                 )),
                 missing: Vec::new(),
+                unexplained_peaks: Vec::new(),
             };
             sink(k, set, &theta)?;
         }

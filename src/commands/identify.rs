@@ -12,7 +12,7 @@ use crate::core::oma::identify::{IdentifyOptions, identify_all};
 use crate::core::oma::settings::Settings;
 use crate::core::oma::track::{Gate, ModeTrack};
 use crate::io::record::read_record;
-use crate::pipeline::accel::{label, modal_set};
+use crate::pipeline::accel::{label, modal_set, spectrum_peaks};
 
 #[derive(Debug, clap::Args)]
 pub struct IdentifyArgs {
@@ -170,6 +170,7 @@ pub fn run(args: &IdentifyArgs) -> Result<()> {
             modes,
             format!("boltwatch identify {} (SSI-COV)", args.input.display()),
         );
+        set.unexplained_peaks = spectrum_peaks(&found.unexplained_peaks);
         label(&mut set, &mut track);
         println!(
             "window {} ({}): {} modes: {}{}",

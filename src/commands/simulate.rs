@@ -130,6 +130,7 @@ pub fn run(args: &SimulateArgs) -> Result<()> {
                 .collect::<String>()
         )),
         missing: Vec::new(),
+        unexplained_peaks: Vec::new(),
     };
     write_json(&args.out, &set.to_json())?;
     println!(

@@ -47,6 +47,7 @@ const TOP_FIELDS: &[&str] = &[
     "temperature_c",
     "source",
     "missing",
+    "unexplained_peaks",
 ];
 
 /// Fields of one mode.
@@ -81,6 +82,19 @@ pub struct ModalSet {
     /// (tracking across windows, issue 26): reported missing, not renumbered. Empty when
     /// not given.
     pub missing: Vec<String>,
+    /// Peaks of the record's spectrum that no mode of the set explains (an
+    /// identification's cross-check, [`crate::core::oma::identify::unexplained_peaks`]).
+    /// Empty when not given.
+    pub unexplained_peaks: Vec<SpectrumPeak>,
+}
+
+/// A peak of the first singular value of a record's spectrum.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SpectrumPeak {
+    /// Frequency, Hz (finite, > 0).
+    pub frequency_hz: f64,
+    /// Height above the higher of its two valleys, dB (finite, > 0).
+    pub prominence_db: f64,
 }
 
 /// One measured mode.
@@ -469,6 +483,7 @@ pub fn parse_modal_set(payload: &[u8], ctx: &ValidationContext) -> Result<ModalS
         }
     };
 
+    let unexplained_peaks = parse_peaks(obj.get("unexplained_peaks"))?;
     Ok(ModalSet {
         structure: structure.to_string(),
         time,
@@ -477,7 +492,51 @@ pub fn parse_modal_set(payload: &[u8], ctx: &ValidationContext) -> Result<ModalS
         temperature_c,
         source,
         missing,
+        unexplained_peaks,
     })
+}
+
+/// `unexplained_peaks`: absent, or an array of `{frequency_hz, prominence_db}`, both > 0.
+fn parse_peaks(v: Option<&Value>) -> Result<Vec<SpectrumPeak>, Rejection> {
+    let items = match v {
+        None => return Ok(Vec::new()),
+        Some(Value::Array(items)) => items,
+        Some(other) => {
+            return Err(reject(
+                "unexplained_peaks",
+                format!("expected an array of peaks, got {}", kind(other)),
+            ));
+        }
+    };
+    items
+        .iter()
+        .enumerate()
+        .map(|(i, item)| {
+            let path = format!("unexplained_peaks[{i}]");
+            let Value::Object(o) = item else {
+                return Err(reject(
+                    &path,
+                    format!("expected an object, got {}", kind(item)),
+                ));
+            };
+            if let Some(k) = o
+                .keys()
+                .find(|k| !["frequency_hz", "prominence_db"].contains(&k.as_str()))
+            {
+                return Err(reject(format!("{path}.{}", capped(k, 64)), "unknown field"));
+            }
+            let field = |name: &str| {
+                let f = format!("{path}.{name}");
+                o.get(name)
+                    .ok_or_else(|| reject(&f, "missing (required)"))
+                    .and_then(|v| positive(v, &f))
+            };
+            Ok(SpectrumPeak {
+                frequency_hz: field("frequency_hz")?,
+                prominence_db: field("prominence_db")?,
+            })
+        })
+        .collect()
 }
 
 /// Parses and validates `modes[i]` on its own; `n_channels` is the length of `channels`.
@@ -838,6 +897,19 @@ impl ModalSet {
         }
         if !self.missing.is_empty() {
             obj.insert("missing".into(), self.missing.clone().into());
+        }
+        if !self.unexplained_peaks.is_empty() {
+            let peaks = self
+                .unexplained_peaks
+                .iter()
+                .map(|p| {
+                    serde_json::json!({
+                        "frequency_hz": p.frequency_hz,
+                        "prominence_db": p.prominence_db,
+                    })
+                })
+                .collect();
+            obj.insert("unexplained_peaks".into(), Value::Array(peaks));
         }
         Value::Object(obj)
     }

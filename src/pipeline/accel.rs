@@ -22,8 +22,11 @@
 use chrono::{DateTime, TimeDelta, Utc};
 
 use crate::contract::accel::{AccelBlock, parse_accel};
-use crate::contract::modal_set::{MeasuredMode, ModalSet, Rejection, UNCERTAINTY_FLOOR};
-use crate::core::oma::identify::{IdentifiedMode, IdentifyOptions, identify};
+use crate::contract::modal_set::{
+    MeasuredMode, ModalSet, Rejection, SpectrumPeak, UNCERTAINTY_FLOOR,
+};
+use crate::core::oma::identify::{IdentifiedMode, IdentifyOptions, identify_all};
+use crate::core::oma::spectrum::Peak;
 use crate::core::oma::track::{Gate, ModeTrack};
 use crate::core::oma::{Quantity, Record};
 use crate::io::driver::StructureModel;
@@ -285,40 +288,30 @@ impl AccelFront {
     }
 
     fn identify_window(&mut self, record: &Record, start: DateTime<Utc>) -> FrontEvent {
-        let opts = self.settings.options(record.rate_hz);
+        let mut opts = self.settings.options(record.rate_hz);
         let when = crate::contract::rfc3339(start);
-        match identify(record, &opts) {
-            Ok(modes) if !modes.is_empty() => {
-                let band_hi = opts
-                    .requested
-                    .band_hz
-                    .map_or(0.45 * record.rate_hz, |b| b.1);
-                let model = self.model.clone();
-                let track = self.track.get_or_insert_with(|| {
-                    model
-                        .and_then(|m| {
-                            ModeTrack::from_model(&m.1, band_hi, Gate::default())
-                                .map_err(|e| {
-                                    tracing::warn!(
-                                        structure = m.1.name,
-                                        "the model's modes cannot be computed to name the identified ones ({e}): modes are labelled as they appear"
-                                    )
-                                })
-                                .ok()
-                        })
-                        .unwrap_or_else(|| ModeTrack::new(Gate::default()))
-                });
+        let band_hi = opts
+            .requested
+            .band_hz
+            .map_or(0.45 * record.rate_hz, |b| b.1);
+        // The model's lowest mode sets the lags, as `identify --model` does.
+        let has_model = self.model.is_some();
+        let lowest = self.track(band_hi).refs.first().map(|r| r.frequency_hz);
+        opts.requested.model_lowest_hz = lowest.filter(|_| has_model);
+        match identify_all(record, &opts) {
+            Ok(found) if !found.modes.is_empty() => {
                 let mut set = modal_set(
                     &self.structure,
                     start,
                     &record.channels,
-                    &modes,
+                    &found.modes,
                     format!(
                         "boltwatch SSI-COV, window of {:.3} s from {when}",
                         record.duration_s()
                     ),
                 );
-                label(&mut set, track);
+                set.unexplained_peaks = spectrum_peaks(&found.unexplained_peaks);
+                label(&mut set, self.track(band_hi));
                 FrontEvent::Set(Box::new(set))
             }
             Ok(_) => FrontEvent::Refused(Rejection {
@@ -331,6 +324,37 @@ impl AccelFront {
             }),
         }
     }
+
+    /// The mode identities, made at the first window (when the band is known): from the
+    /// model's modes up to `band_hi` when there is a model.
+    fn track(&mut self, band_hi: f64) -> &mut ModeTrack {
+        let model = self.model.clone();
+        self.track.get_or_insert_with(|| {
+            model
+                .and_then(|m| {
+                    ModeTrack::from_model(&m.1, band_hi, Gate::default())
+                        .map_err(|e| {
+                            tracing::warn!(
+                                structure = m.1.name,
+                                "the model's modes cannot be computed to name the identified ones ({e}): modes are labelled as they appear"
+                            )
+                        })
+                        .ok()
+                })
+                .unwrap_or_else(|| ModeTrack::new(Gate::default()))
+        })
+    }
+}
+
+/// The spectrum's peaks as the modal-set contract carries them.
+pub fn spectrum_peaks(peaks: &[Peak]) -> Vec<SpectrumPeak> {
+    peaks
+        .iter()
+        .map(|p| SpectrumPeak {
+            frequency_hz: p.frequency_hz,
+            prominence_db: p.prominence_db,
+        })
+        .collect()
 }
 
 /// Labels the modes of `set` ([`ModeTrack::assign`]) and lists the missing ones.
@@ -390,6 +414,7 @@ pub fn modal_set(
         temperature_c: None,
         source: Some(source),
         missing: Vec::new(),
+        unexplained_peaks: Vec::new(),
     }
 }
 

@@ -143,6 +143,7 @@ fn round_trip_keeps_sub_seconds_and_awkward_floats() {
         temperature_c: None,
         source: None,
         missing: vec!["mode 2".into()],
+        unexplained_peaks: Vec::new(),
     };
     let json = set.to_json();
     assert_eq!(json["time"], "2026-11-21T10:00:00.123456Z");
@@ -829,4 +830,43 @@ fn labels_and_missing_modes_are_kept_and_checked() {
     assert_rejected(parse(&v), "missing[1]", &["labels a mode of this set"]);
     let v = with(|v| v["missing"] = json!("a"));
     assert_rejected(parse(&v), "missing", &["expected an array"]);
+}
+
+/// `unexplained_peaks` (an identification's cross-check against the spectrum) round-trips,
+/// and a malformed one is rejected by its path.
+#[test]
+fn unexplained_peaks_round_trip_and_are_validated() {
+    let v = with(|v| {
+        v["unexplained_peaks"] = json!([{"frequency_hz": 21.375, "prominence_db": 8.1}]);
+    });
+    let set = parse(&v).unwrap();
+    assert_eq!(
+        set.unexplained_peaks,
+        [SpectrumPeak {
+            frequency_hz: 21.375,
+            prominence_db: 8.1
+        }]
+    );
+    assert_eq!(set.to_json()["unexplained_peaks"], v["unexplained_peaks"]);
+    assert_rejected(
+        parse(&with(|v| {
+            v["unexplained_peaks"] = json!({"frequency_hz": 1.0})
+        })),
+        "unexplained_peaks",
+        &["expected an array"],
+    );
+    assert_rejected(
+        parse(&with(|v| {
+            v["unexplained_peaks"] = json!([{"frequency_hz": -2.0, "prominence_db": 8.1}]);
+        })),
+        "unexplained_peaks[0].frequency_hz",
+        &["> 0"],
+    );
+    assert_rejected(
+        parse(&with(|v| {
+            v["unexplained_peaks"] = json!([{"frequency_hz": 2.0, "prominence_db": 8.1, "q": 1}]);
+        })),
+        "unexplained_peaks[0].q",
+        &["unknown"],
+    );
 }

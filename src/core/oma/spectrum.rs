@@ -3,10 +3,10 @@
 //! decomposition", Smart Mater. Struct. 10, 2001): the first singular value of the output
 //! cross-spectral matrix at every frequency line, and its prominent peaks.
 //!
-//! The cross spectra `G_ij(f)` between every channel `i` and the reference channels `j` are
-//! Welch averages (Hann window, half overlap, each segment's mean removed) of the channels
-//! scaled to unit variance, so units and gains do not decide. The first singular value of
-//! the `r × r0` matrix `G(f)` peaks at every mode a reference sees; two modes close in
+//! The cross spectra `G_ij(f)` between the reference channels are Welch averages (Hann
+//! window, half overlap, each segment's mean removed) of the channels scaled to unit
+//! variance, so units and gains do not decide. The first singular value of the `r0 × r0`
+//! matrix `G(f)` peaks at every mode a reference sees; two modes close in
 //! frequency show as one peak of the first and one of the second singular value, so peaks
 //! of the first are a lower bound on the modes of a band. It serves twice: it tells where
 //! the record's modes lie before any setting is chosen ([`super::settings`]), and it checks
@@ -58,49 +58,37 @@ pub fn welch_segment(n: usize) -> usize {
     len
 }
 
-/// The spectrum of the columns of `y` (samples × channels) at `rate_hz`, against the
-/// reference columns `refs`.
+/// The spectrum of the reference columns `refs` of `y` (samples × channels) at `rate_hz`:
+/// the first singular value of their `r0 × r0` cross-spectral matrix. The references are
+/// the channels whose responses are the most independent ([`super::ssi::choose_references`]),
+/// so every mode the identification can see shows here, at `r0²` rather than `r²` the cost.
 pub fn spectrum(y: MatRef<'_, f64>, refs: &[usize], rate_hz: f64) -> Spectrum {
-    let (n, r) = (y.nrows(), y.ncols());
+    use rayon::prelude::*;
+    let n = y.nrows();
+    let r0 = refs.len();
     let seg = welch_segment(n).min(n.max(2));
     let lines = seg / 2 + 1;
     let window: Vec<f64> = (0..seg)
         .map(|k| 0.5 - 0.5 * (2.0 * std::f64::consts::PI * k as f64 / seg as f64).cos())
         .collect();
-    let scale: Vec<f64> = (0..r).map(|j| 1.0 / column_std(y, j)).collect();
-    let fft = RealFftPlanner::<f64>::new().plan_fft_forward(seg);
-    let mut g = vec![c64::new(0.0, 0.0); lines * r * refs.len()];
-    let mut spectra = vec![vec![c64::new(0.0, 0.0); lines]; r];
-    let mut buf = fft.make_input_vec();
-    let mut start = 0;
-    while start + seg <= n {
-        for (j, out) in spectra.iter_mut().enumerate() {
-            let seg_y = y.col(j).subrows(start, seg);
-            let mean = seg_y.iter().sum::<f64>() / seg as f64;
-            for (k, b) in buf.iter_mut().enumerate() {
-                *b = (seg_y[k] - mean) * scale[j] * window[k];
-            }
-            let mut spec: Vec<realfft::num_complex::Complex<f64>> = fft.make_output_vec();
-            fft.process(&mut buf, &mut spec)
-                .expect("buffers sized by the plan");
-            for (o, s) in out.iter_mut().zip(&spec) {
-                *o = c64::new(s.re, s.im);
-            }
-        }
-        for l in 0..lines {
-            for (b, &jr) in refs.iter().enumerate() {
-                let xr = spectra[jr][l].conj();
-                for (i, si) in spectra.iter().enumerate() {
-                    g[(l * refs.len() + b) * r + i] += si[l] * xr;
-                }
-            }
-        }
-        start += seg / 2;
-    }
+    let starts: Vec<usize> = (0..)
+        .map(|k| k * (seg / 2))
+        .take_while(|s| s + seg <= n)
+        .collect();
+    // Per reference channel, the spectra of every segment (segments × lines).
+    let spectra: Vec<Vec<Vec<c64>>> = refs
+        .par_iter()
+        .map(|&j| segment_spectra(y.col(j).iter().copied().collect(), &starts, &window))
+        .collect();
     let sv1_db = (0..lines)
+        .into_par_iter()
         .map(|l| {
-            let gl = &g[l * r * refs.len()..(l + 1) * r * refs.len()];
-            10.0 * first_singular_value(gl, r, refs.len()).max(1e-300).log10()
+            let g = Mat::from_fn(r0, r0, |a, b| {
+                (0..starts.len())
+                    .map(|k| spectra[a][k][l] * spectra[b][k][l].conj())
+                    .fold(c64::new(0.0, 0.0), |acc, x| acc + x)
+            });
+            10.0 * largest_eigenvalue(&g).max(1e-300).log10()
         })
         .collect();
     Spectrum {
@@ -111,24 +99,44 @@ pub fn spectrum(y: MatRef<'_, f64>, refs: &[usize], rate_hz: f64) -> Spectrum {
     }
 }
 
-fn column_std(y: MatRef<'_, f64>, j: usize) -> f64 {
-    let n = y.nrows() as f64;
-    let mean = y.col(j).iter().sum::<f64>() / n;
-    let var = y.col(j).iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
+/// The windowed spectra of one channel's segments (each segment's mean removed; the
+/// channel scaled to unit variance).
+fn segment_spectra(x: Vec<f64>, starts: &[usize], window: &[f64]) -> Vec<Vec<c64>> {
+    let seg = window.len();
+    let scale = 1.0 / column_std(&x);
+    let fft = RealFftPlanner::<f64>::new().plan_fft_forward(seg);
+    let mut buf = fft.make_input_vec();
+    let mut out = fft.make_output_vec();
+    starts
+        .iter()
+        .map(|&s| {
+            let part = &x[s..s + seg];
+            let mean = part.iter().sum::<f64>() / seg as f64;
+            for ((b, v), w) in buf.iter_mut().zip(part).zip(window) {
+                *b = (v - mean) * scale * w;
+            }
+            fft.process(&mut buf, &mut out)
+                .expect("buffers sized by the plan");
+            out.iter().map(|z| c64::new(z.re, z.im)).collect()
+        })
+        .collect()
+}
+
+fn column_std(x: &[f64]) -> f64 {
+    let n = x.len() as f64;
+    let mean = x.iter().sum::<f64>() / n;
+    let var = x.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
     var.sqrt().max(f64::MIN_POSITIVE)
 }
 
-/// The largest singular value of the `r × r0` matrix `g` (column-major): the square root of
-/// the largest eigenvalue of `gᴴg`.
-fn first_singular_value(g: &[c64], r: usize, r0: usize) -> f64 {
-    let m = Mat::from_fn(r, r0, |i, j| g[j * r + i]);
-    let gram = m.adjoint() * &m;
-    gram.self_adjoint_eigenvalues(Side::Lower)
+/// The largest eigenvalue of the Hermitian matrix `g` (its largest singular value: `g` is
+/// a cross-spectral matrix, positive semi-definite).
+fn largest_eigenvalue(g: &Mat<c64>) -> f64 {
+    g.self_adjoint_eigenvalues(Side::Lower)
         .ok()
         .and_then(|v| v.last().copied())
         .unwrap_or(0.0)
         .max(0.0)
-        .sqrt()
 }
 
 impl Spectrum {
