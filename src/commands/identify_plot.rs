@@ -53,7 +53,9 @@ pub fn write(dir: &Path, name: &str, found: &Identification) -> Result<()> {
     Ok(())
 }
 
-/// Every pole of every sub-band: `band,order,frequency_hz,damping,mpc,verdict,mode`.
+/// Every pole of every sub-band: `band,order,frequency_hz,damping,verdict,mode`; the
+/// verdict is `not physical`, `unstable`, `stable`, `mode` or `noise` (a cluster the noise
+/// rule left out), and `mode` the frequency of the cluster's representative.
 fn poles_csv(found: &Identification) -> String {
     let mut out = String::from("band,order,frequency_hz,damping,verdict,mode\n");
     for (k, b) in found.bands.iter().enumerate() {
@@ -127,13 +129,17 @@ fn draw_band<DB: DrawingBackend>(
     } else {
         (-1.0, 1.0)
     };
+    let decimated = if s.decimate > 1 {
+        format!(" (decimated {}×)", s.decimate)
+    } else {
+        String::new()
+    };
     let title = format!(
-        "Sub-band {}: {:.2}–{:.2} Hz at {} Hz (decimated {}×), {} block rows",
+        "Sub-band {}: {:.2}–{:.2} Hz at {} Hz{decimated}, {} block rows",
         k + 1,
         lo,
         hi,
         s.rate_hz,
-        s.decimate,
         s.block_rows
     );
     let mut chart = ChartBuilder::on(area)
@@ -209,7 +215,15 @@ fn draw_poles<DB: DrawingBackend>(
     chart: &mut Dual<'_, DB>,
     band: &BandResult,
 ) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
-    let pick = |want: fn(&Verdict) -> bool| -> Vec<(f64, f64)> {
+    // A cluster the noise rule left out: its frequency is among `noise_hz`.
+    let noise = |v: &Verdict| match v {
+        Verdict::Mode(k) => {
+            let f = band.selection.modes[*k].pole.frequency_hz;
+            band.noise_hz.iter().any(|n| (n - f).abs() < 1e-9)
+        }
+        _ => false,
+    };
+    let pick = |want: &dyn Fn(&Verdict) -> bool| -> Vec<(f64, f64)> {
         band.poles
             .poles
             .iter()
@@ -218,9 +232,10 @@ fn draw_poles<DB: DrawingBackend>(
             .map(|(p, _)| (p.frequency_hz, p.order as f64))
             .collect()
     };
-    let unstable = pick(|v| matches!(v, Verdict::Unstable));
-    let stable = pick(|v| matches!(v, Verdict::Stable));
-    let chosen = pick(|v| matches!(v, Verdict::Mode(_)));
+    let unstable = pick(&|v| matches!(v, Verdict::Unstable));
+    let stable = pick(&|v| matches!(v, Verdict::Stable));
+    let chosen = pick(&|v| matches!(v, Verdict::Mode(_)) && !noise(v));
+    let dropped = pick(&|v| noise(v));
     chart
         .draw_series(
             unstable
@@ -241,5 +256,13 @@ fn draw_poles<DB: DrawingBackend>(
         .draw_series(chosen.into_iter().map(|p| Circle::new(p, 3, MODE.filled())))?
         .label("pole of a chosen mode")
         .legend(|(x, y)| Circle::new((x + 8, y), 3, MODE.filled()));
+    chart
+        .draw_series(
+            dropped
+                .into_iter()
+                .map(|p| Circle::new(p, 3, NOISE.filled())),
+        )?
+        .label("pole of a cluster left out as noise")
+        .legend(|(x, y)| Circle::new((x + 8, y), 3, NOISE.filled()));
     Ok(())
 }

@@ -812,24 +812,75 @@ fn every_mode_the_authors_list_is_found_in_the_measured_frame() {
         let record = boltwatch::io::record::read_record(&path).unwrap().record;
         let found = identify_all(&record, &IdentifyOptions::default()).unwrap();
         for &f in &merged {
-            let best = found
+            let m = found
                 .modes
                 .iter()
-                .map(|m| m.frequency_hz)
-                .min_by(|a, b| (a / f - 1.0).abs().total_cmp(&(b / f - 1.0).abs()))
+                .min_by(|a, b| {
+                    let e = |m: &&boltwatch::core::oma::identify::IdentifiedMode| {
+                        (m.frequency_hz / f - 1.0).abs()
+                    };
+                    e(a).total_cmp(&e(b))
+                })
                 .unwrap();
+            let best = m.frequency_hz;
             println!(
-                "setup {setup}: authors {f:.4} Hz, ours {best:.4} Hz ({:+.3} %)",
-                100.0 * (best / f - 1.0)
+                "setup {setup}: authors {f:.4} Hz, ours {best:.4} Hz ({:+.3} %), σ_f {:.4} Hz, \
+                 ζ {:.3} % ± {:.3} %",
+                100.0 * (best / f - 1.0),
+                m.frequency_std,
+                100.0 * m.damping,
+                100.0 * m.damping_std
             );
             assert!((best / f - 1.0).abs() < 0.01, "setup {setup}: {f:.4} Hz");
+            // The setups, measured one after another, agree on every frequency within
+            // 0.2 %: a σ_f above 0.5 % of it is not the uncertainty of this record.
+            assert!(
+                m.frequency_std < 0.005 * f,
+                "setup {setup}: σ_f of {best:.4} Hz"
+            );
         }
         assert!(
             found.unexplained_peaks.is_empty(),
             "setup {setup}: {:?}",
             found.unexplained_peaks
         );
+        if setup == 2 {
+            stabilization_diagram_is_written(&found);
+        }
     }
+}
+
+/// `identify --plot`: the PNG, the SVG and the poles behind them, one CSV row per pole with
+/// what the selection made of it; the SVG names both axes and every kind of pole.
+fn stabilization_diagram_is_written(found: &boltwatch::core::oma::identify::Identification) {
+    let dir = std::env::temp_dir().join(format!("bw-oma-plot-{}", std::process::id()));
+    boltwatch::commands::identify_plot::write(&dir, "stab", found).unwrap();
+    let png = std::fs::read(dir.join("stab.png")).unwrap();
+    assert_eq!(&png[1..4], b"PNG");
+    let svg = std::fs::read_to_string(dir.join("stab.svg")).unwrap();
+    for text in [
+        "Model order",
+        "Frequency (Hz)",
+        "pole of a chosen mode",
+        "unstable pole",
+    ] {
+        assert!(svg.contains(text), "the SVG lacks {text:?}");
+    }
+    let csv = std::fs::read_to_string(dir.join("stab-poles.csv")).unwrap();
+    let _ = std::fs::remove_dir_all(&dir);
+    let poles: usize = found.bands.iter().map(|b| b.poles.poles.len()).sum();
+    assert_eq!(csv.lines().count(), poles + 1);
+    let in_modes = csv
+        .lines()
+        .filter(|l| l.contains(",mode,") || l.contains(",noise,"))
+        .count();
+    let members: usize = found
+        .bands
+        .iter()
+        .flat_map(|b| &b.selection.modes)
+        .map(|m| m.members)
+        .sum();
+    assert_eq!(in_modes, members);
 }
 
 /// Six channels, 0.2 % damping, nine modes from 1.1 to 14.6 Hz (two pairs 4 % apart), 240 s
