@@ -4,6 +4,7 @@
 //! - `csv_read`: [`read_csv`], the parsing `boltwatch identify --input` does;
 //! - `identify`: SSI-COV with the automatic mode choice and every mode's first-order
 //!   standard deviations (30 blocks), the default options;
+//! - `identify_of_csv_record`: the identification of the record read from the CSV;
 //! - `csv_and_identify`: both, the target (< 2 s on two cores).
 //!
 //! And `identify_240s_6ch_256hz`: a record the size of the measured frame in
@@ -16,7 +17,7 @@ use std::hint::black_box;
 use boltwatch::core::model::Model;
 use boltwatch::core::model::spec::ModelSpec;
 use boltwatch::core::oma::identify::{IdentifyOptions, identify};
-use boltwatch::core::oma::synth::{SynthOptions, TrueMode, accelerations, from_modes};
+use boltwatch::core::oma::synth::{SynthOptions, accelerations, light_damping_frame};
 use boltwatch::io::record::{read_csv, write_csv};
 use criterion::{Criterion, criterion_group, criterion_main};
 
@@ -55,6 +56,10 @@ fn bench_identify(c: &mut Criterion) {
     g.bench_function("identify", |b| {
         b.iter(|| black_box(identify(&sim.record, &opts).unwrap()))
     });
+    let from_csv = read_csv(&csv).unwrap();
+    g.bench_function("identify_of_csv_record", |b| {
+        b.iter(|| black_box(identify(&from_csv.record, &opts).unwrap()))
+    });
     g.bench_function("csv_and_identify", |b| {
         b.iter(|| {
             let f = read_csv(&csv).unwrap();
@@ -69,31 +74,7 @@ fn bench_identify(c: &mut Criterion) {
 /// 14.6 Hz (the size of the measured frame in `tests/data/pyoma-frame`): the whole
 /// identification with settings from the record (target < 0.5 s).
 fn bench_few_channels(c: &mut Criterion) {
-    let freqs = [1.1, 2.3, 3.9, 5.6, 7.4, 7.7, 12.2, 12.7, 14.6];
-    let modes: Vec<TrueMode> = freqs
-        .iter()
-        .enumerate()
-        .map(|(k, &f)| TrueMode {
-            frequency_hz: f,
-            damping: 0.002,
-            shape: (0..6)
-                .map(|c| ((k + 1) as f64 * (c + 1) as f64 * 0.7 + k as f64).sin())
-                .collect(),
-        })
-        .collect();
-    let sim = from_modes(
-        modes,
-        (1..=6).map(|c| format!("ch{c}")).collect(),
-        &SynthOptions {
-            rate_hz: 256.0,
-            duration_s: 240.0,
-            damping: 0.002,
-            max_frequency_hz: None,
-            noise_rel: 0.02,
-            seed: 11,
-            quantities: vec![],
-        },
-    );
+    let sim = light_damping_frame();
     let opts = IdentifyOptions::default();
     let mut g = c.benchmark_group("identify_240s_6ch_256hz");
     g.sample_size(10);

@@ -65,7 +65,7 @@ fn poles_csv(found: &Identification) -> String {
                 Verdict::Unstable => ("unstable", String::new()),
                 Verdict::Stable => ("stable", String::new()),
                 Verdict::Mode(m) => (
-                    "mode",
+                    if b.noise[*m] { "noise" } else { "mode" },
                     format!("{:.5}", b.selection.modes[*m].pole.frequency_hz),
                 ),
             };
@@ -191,9 +191,9 @@ fn draw_modes<DB: DrawingBackend>(
     band: &BandResult,
     top: f64,
 ) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
-    for m in &band.selection.modes {
+    for (m, &noise) in band.selection.modes.iter().zip(&band.noise) {
         let f = m.pole.frequency_hz;
-        if band.noise_hz.iter().any(|n| (n - f).abs() < 1e-9) {
+        if noise {
             chart.draw_series(std::iter::once(plotters::element::DashedPathElement::new(
                 vec![(f, 0.0), (f, top)],
                 4,
@@ -215,14 +215,8 @@ fn draw_poles<DB: DrawingBackend>(
     chart: &mut Dual<'_, DB>,
     band: &BandResult,
 ) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
-    // A cluster the noise rule left out: its frequency is among `noise_hz`.
-    let noise = |v: &Verdict| match v {
-        Verdict::Mode(k) => {
-            let f = band.selection.modes[*k].pole.frequency_hz;
-            band.noise_hz.iter().any(|n| (n - f).abs() < 1e-9)
-        }
-        _ => false,
-    };
+    // A cluster the noise rule left out.
+    let noise = |v: &Verdict| matches!(v, Verdict::Mode(k) if band.noise[*k]);
     let pick = |want: &dyn Fn(&Verdict) -> bool| -> Vec<(f64, f64)> {
         band.poles
             .poles

@@ -76,10 +76,7 @@ pub fn read_csv(path: &Path) -> Result<RecordFile> {
     let name = path.display();
     let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", name))?;
     let (sidecar, sidecar_path) = read_sidecar(path)?;
-    let mut lines = text
-        .lines()
-        .enumerate()
-        .filter(|(_, l)| !l.trim().is_empty() && !l.starts_with('#'));
+    let mut lines = numbered_lines(&text).into_iter();
     let Some((_, header)) = lines.next() else {
         bail!("{name}: empty file (expected a header `time_s,<channel>,…`)");
     };
@@ -114,6 +111,42 @@ pub fn read_csv(path: &Path) -> Result<RecordFile> {
         value: |k: usize, c: usize| values[k * r + c],
     };
     finish(path, &sidecar_path, sidecar, columns, rate_hz, times[0])
+}
+
+/// The lines of `text` that hold something (not blank, not a `#` comment), each with its
+/// index in the file; split in parallel over pieces that end at a line break.
+fn numbered_lines(text: &str) -> Vec<(usize, &str)> {
+    use rayon::prelude::*;
+    const PIECE: usize = 1 << 20;
+    let mut pieces = Vec::new();
+    let mut start = 0;
+    while start < text.len() {
+        let end = text[(start + PIECE).min(text.len())..]
+            .find('\n')
+            .map_or(text.len(), |i| (start + PIECE).min(text.len()) + i + 1);
+        pieces.push(&text[start..end]);
+        start = end;
+    }
+    let split: Vec<(usize, Vec<(usize, &str)>)> = pieces
+        .par_iter()
+        .map(|piece| {
+            let mut count = 0;
+            let kept = piece
+                .lines()
+                .inspect(|_| count += 1)
+                .enumerate()
+                .filter(|(_, l)| !l.trim().is_empty() && !l.starts_with('#'))
+                .collect();
+            (count, kept)
+        })
+        .collect();
+    let mut offset = 0;
+    let mut out = Vec::with_capacity(split.iter().map(|p| p.1.len()).sum());
+    for (count, kept) in split {
+        out.extend(kept.into_iter().map(|(i, l)| (i + offset, l)));
+        offset += count;
+    }
+    out
 }
 
 /// The samples and time column of the CSV rows, parsed in parallel chunks (the text is

@@ -890,33 +890,7 @@ fn stabilization_diagram_is_written(found: &boltwatch::core::oma::identify::Iden
 #[test]
 fn few_channels_and_light_damping_give_every_mode() {
     use boltwatch::core::oma::identify::{IdentifyOptions, identify_all};
-    use boltwatch::core::oma::synth::{TrueMode, from_modes};
-    let freqs = [1.1, 2.3, 3.9, 5.6, 7.4, 7.7, 12.2, 12.7, 14.6];
-    let modes: Vec<TrueMode> = freqs
-        .iter()
-        .enumerate()
-        .map(|(k, &f)| TrueMode {
-            frequency_hz: f,
-            damping: 0.002,
-            shape: (0..6)
-                .map(|c| ((k + 1) as f64 * (c + 1) as f64 * 0.7 + k as f64).sin())
-                .collect(),
-        })
-        .collect();
-    let channels: Vec<String> = (1..=6).map(|c| format!("ch{c}")).collect();
-    let sim = from_modes(
-        modes,
-        channels,
-        &SynthOptions {
-            rate_hz: 256.0,
-            duration_s: 240.0,
-            damping: 0.002,
-            max_frequency_hz: None,
-            noise_rel: 0.02,
-            seed: 11,
-            quantities: vec![],
-        },
-    );
+    let sim = boltwatch::core::oma::synth::light_damping_frame();
     let found = identify_all(&sim.record, &IdentifyOptions::default()).unwrap();
     for b in &found.settings.bands {
         println!("{b:?}");

@@ -11,6 +11,7 @@ use super::ssi::{PoleSet, SsiOptions};
 use super::stabilize::{Criteria, Selection, select};
 use super::uncertainty::{Sensitivities, identify_with_sensitivities};
 use super::{OmaError, Record};
+use rayon::prelude::*;
 
 /// Options of [`identify`].
 #[derive(Debug, Clone)]
@@ -55,8 +56,8 @@ pub struct Identification {
 pub struct BandResult {
     pub poles: PoleSet,
     pub selection: Selection,
-    /// Frequencies of the clusters the noise rule left out, Hz.
-    pub noise_hz: Vec<f64>,
+    /// Per cluster of `selection.modes`, whether the noise rule left it out.
+    pub noise: Vec<bool>,
 }
 
 /// An identified mode with its standard deviations.
@@ -147,12 +148,17 @@ fn identify_band(
         ..opts.criteria.clone()
     };
     let selection = select(&poles, &criteria);
-    let mut solves = std::collections::HashMap::new();
+    let solves = order_solves(&selection.modes, &sens)?;
+    let found: Vec<IdentifiedMode> = selection
+        .modes
+        .par_iter()
+        .map(|m| with_uncertainty(m, &sens, &solves))
+        .collect::<Result<_, _>>()?;
     let mut modes = Vec::with_capacity(selection.modes.len());
-    let mut noise_hz = Vec::new();
-    for m in &selection.modes {
-        let mode = with_uncertainty(m, &sens, &mut solves)?;
-        if is_noise(&mode, m) {
+    let mut noise = Vec::with_capacity(selection.modes.len());
+    for (m, mode) in selection.modes.iter().zip(found) {
+        noise.push(is_noise(&mode, m));
+        if noise[noise.len() - 1] {
             tracing::debug!(
                 f = mode.frequency_hz,
                 cov_f = mode.frequency_std / mode.frequency_hz,
@@ -162,7 +168,6 @@ fn identify_band(
                 spread = m.frequency_spread,
                 "a mode left out as noise"
             );
-            noise_hz.push(mode.frequency_hz);
         } else {
             modes.push(mode);
         }
@@ -172,7 +177,7 @@ fn identify_band(
         BandResult {
             poles,
             selection,
-            noise_hz,
+            noise,
         },
     ))
 }
@@ -197,26 +202,30 @@ pub const SIGMA_QUANTILE: f64 = 0.25;
 fn with_uncertainty(
     m: &super::stabilize::SelectedMode,
     sens: &Sensitivities,
-    solves: &mut std::collections::HashMap<usize, super::uncertainty::OrderSolve>,
+    solves: &Solves,
 ) -> Result<IdentifiedMode, OmaError> {
     let mut members = Vec::with_capacity(m.member_poles.len());
     for &(o, fo) in &m.member_poles {
-        let solve = solve_at(solves, sens, o)?;
-        if let Some(s) = sens
-            .mode_near(solve, fo)
-            .filter(|s| (s.frequency_hz / fo - 1.0).abs() <= 1e-6)
+        let solve = solve_at(solves, o)?;
+        if let Some((_, sf)) = sens
+            .frequency_std_near(solve, fo)
+            .filter(|(f, _)| (f / fo - 1.0).abs() <= 1e-6)
         {
-            members.push((o, s));
+            members.push((o, fo, sf));
         }
     }
-    members.sort_by(|a, b| a.1.frequency_std.total_cmp(&b.1.frequency_std));
+    members.sort_by(|a, b| a.2.total_cmp(&b.2));
     let pick = ((members.len().max(1) - 1) as f64 * SIGMA_QUANTILE).floor() as usize;
-    let (order, best) = members.into_iter().nth(pick).ok_or_else(|| {
+    let not_found = || {
         OmaError::Numerical(format!(
             "no pole of the mode at {:.4} Hz is found again for its uncertainty",
             m.pole.frequency_hz
         ))
-    })?;
+    };
+    let &(order, fo, _) = members.get(pick).ok_or_else(not_found)?;
+    let best = sens
+        .mode_near(solve_at(solves, order)?, fo)
+        .ok_or_else(not_found)?;
     Ok(IdentifiedMode {
         frequency_hz: best.frequency_hz,
         frequency_std: best.frequency_std,
@@ -230,16 +239,31 @@ fn with_uncertainty(
     })
 }
 
-/// The eigen-decomposition of order `o`, computed once.
-fn solve_at<'a>(
-    solves: &'a mut std::collections::HashMap<usize, super::uncertainty::OrderSolve>,
+/// The eigen-decomposition of every order a chosen mode has a pole at.
+fn order_solves(
+    modes: &[super::stabilize::SelectedMode],
     sens: &Sensitivities,
-    o: usize,
-) -> Result<&'a super::uncertainty::OrderSolve, OmaError> {
-    Ok(match solves.entry(o) {
-        std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
-        std::collections::hash_map::Entry::Vacant(e) => e.insert(sens.order(o)?),
-    })
+) -> Result<Solves, OmaError> {
+    let mut orders: Vec<usize> = modes
+        .iter()
+        .flat_map(|m| m.member_poles.iter().map(|p| p.0))
+        .collect();
+    orders.sort_unstable();
+    orders.dedup();
+    orders
+        .into_par_iter()
+        .map(|o| Ok((o, sens.order(o)?)))
+        .collect()
+}
+
+/// Eigen-decompositions by order ([`order_solves`]).
+type Solves = std::collections::HashMap<usize, super::uncertainty::OrderSolve>;
+
+/// The decomposition of order `o`, which [`order_solves`] computed.
+fn solve_at(solves: &Solves, o: usize) -> Result<&super::uncertainty::OrderSolve, OmaError> {
+    solves
+        .get(&o)
+        .ok_or_else(|| OmaError::Numerical(format!("order {o} was not decomposed")))
 }
 
 /// The noise rule. A mode of a well-populated cluster is noise when its damping is not

@@ -101,14 +101,13 @@ pub fn derive(y: MatRef<'_, f64>, rate_hz: f64, req: &Requested) -> Settings {
     let band = req.band_hz.unwrap_or((0.0, 0.45 * rate_hz));
     let peaks = spectrum.peaks(band, PEAK_PROMINENCE_DB);
     let fixed = req.block_rows.is_some() || req.decimate.is_some();
-    let (mut groups, edges) = if fixed {
+    let (groups, edges) = if fixed {
         (vec![peaks.clone()], vec![band])
     } else {
         let mut groups = split(&peaks, rate_hz, band);
         let edges = edges(&mut groups, band);
         (groups, edges)
     };
-    groups.truncate(edges.len());
     let bands = groups
         .iter()
         .zip(&edges)

@@ -75,20 +75,21 @@ pub fn spectrum(y: MatRef<'_, f64>, refs: &[usize], rate_hz: f64) -> Spectrum {
         .map(|k| k * (seg / 2))
         .take_while(|s| s + seg <= n)
         .collect();
-    // Per reference channel, the spectra of every segment (segments × lines).
-    let spectra: Vec<Vec<Vec<c64>>> = refs
-        .par_iter()
-        .map(|&j| segment_spectra(y.col(j).iter().copied().collect(), &starts, &window))
-        .collect();
-    let sv1_db = (0..lines)
-        .into_par_iter()
-        .map(|l| {
-            let g = Mat::from_fn(r0, r0, |a, b| {
-                (0..starts.len())
-                    .map(|k| spectra[a][k][l] * spectra[b][k][l].conj())
-                    .fold(c64::new(0.0, 0.0), |acc, x| acc + x)
-            });
-            10.0 * largest_eigenvalue(&g).max(1e-300).log10()
+    let g = cross_spectra(y, refs, &starts, &window);
+    // Lines in chunks, each line's power iteration started from its neighbour's vector.
+    let all: Vec<usize> = (0..lines).collect();
+    let sv1_db = all
+        .par_chunks(256)
+        .flat_map_iter(|chunk| {
+            let mut v = vec![c64::new(1.0, 0.0); r0];
+            chunk
+                .iter()
+                .map(|&l| {
+                    let gl = &g[l * r0 * r0..][..r0 * r0];
+                    let g = Mat::from_fn(r0, r0, |a, b| gl[a * r0 + b]);
+                    10.0 * largest_eigenvalue(&g, &mut v).max(1e-300).log10()
+                })
+                .collect::<Vec<_>>()
         })
         .collect();
     Spectrum {
@@ -99,27 +100,56 @@ pub fn spectrum(y: MatRef<'_, f64>, refs: &[usize], rate_hz: f64) -> Spectrum {
     }
 }
 
-/// The windowed spectra of one channel's segments (each segment's mean removed; the
-/// channel scaled to unit variance).
-fn segment_spectra(x: Vec<f64>, starts: &[usize], window: &[f64]) -> Vec<Vec<c64>> {
-    let seg = window.len();
-    let scale = 1.0 / column_std(&x);
-    let fft = RealFftPlanner::<f64>::new().plan_fft_forward(seg);
-    let mut buf = fft.make_input_vec();
-    let mut out = fft.make_output_vec();
-    starts
+/// The cross-spectral matrices `G(f) = Σ_k X_k(f) X_k(f)ᴴ` of the reference channels
+/// over the segments starting at `starts` (each segment's mean removed, each channel
+/// scaled to unit variance, then windowed), line by line: `r0 × r0` entries per line,
+/// row-major. The segments are shared among the threads, each summing its own matrices.
+fn cross_spectra(y: MatRef<'_, f64>, refs: &[usize], starts: &[usize], window: &[f64]) -> Vec<c64> {
+    use rayon::prelude::*;
+    let (seg, r0) = (window.len(), refs.len());
+    let lines = seg / 2 + 1;
+    let scale: Vec<f64> = refs
         .iter()
-        .map(|&s| {
-            let part = &x[s..s + seg];
-            let mean = part.iter().sum::<f64>() / seg as f64;
-            for ((b, v), w) in buf.iter_mut().zip(part).zip(window) {
-                *b = (v - mean) * scale * w;
+        .map(|&j| 1.0 / column_std(&y.col(j).iter().copied().collect::<Vec<_>>()))
+        .collect();
+    let per_thread = starts
+        .len()
+        .div_ceil(rayon::current_num_threads().max(1))
+        .max(1);
+    starts
+        .par_chunks(per_thread)
+        .map(|chunk| {
+            let fft = RealFftPlanner::<f64>::new().plan_fft_forward(seg);
+            let mut buf = fft.make_input_vec();
+            let mut spectra = vec![fft.make_output_vec(); r0];
+            let mut g = vec![c64::new(0.0, 0.0); lines * r0 * r0];
+            for &s in chunk {
+                for (a, &j) in refs.iter().enumerate() {
+                    let part = y.col(j).subrows(s, seg);
+                    let mean = part.iter().sum::<f64>() / seg as f64;
+                    for ((b, v), w) in buf.iter_mut().zip(part.iter()).zip(window) {
+                        *b = (v - mean) * scale[a] * w;
+                    }
+                    fft.process(&mut buf, &mut spectra[a])
+                        .expect("buffers sized by the plan");
+                }
+                for (l, gl) in g.chunks_exact_mut(r0 * r0).enumerate() {
+                    for a in 0..r0 {
+                        let za = spectra[a][l];
+                        for b in 0..r0 {
+                            let zb = spectra[b][l];
+                            gl[a * r0 + b] += c64::new(za.re, za.im) * c64::new(zb.re, -zb.im);
+                        }
+                    }
+                }
             }
-            fft.process(&mut buf, &mut out)
-                .expect("buffers sized by the plan");
-            out.iter().map(|z| c64::new(z.re, z.im)).collect()
+            g
         })
-        .collect()
+        .reduce_with(|mut a, b| {
+            a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+            a
+        })
+        .unwrap_or_else(|| vec![c64::new(0.0, 0.0); lines * r0 * r0])
 }
 
 fn column_std(x: &[f64]) -> f64 {
@@ -129,9 +159,48 @@ fn column_std(x: &[f64]) -> f64 {
     var.sqrt().max(f64::MIN_POSITIVE)
 }
 
+/// Power iterations before [`largest_eigenvalue`] falls back to the full decomposition.
+const POWER_ITERATIONS: usize = 200;
+
 /// The largest eigenvalue of the Hermitian matrix `g` (its largest singular value: `g` is
-/// a cross-spectral matrix, positive semi-definite).
-fn largest_eigenvalue(g: &Mat<c64>) -> f64 {
+/// a cross-spectral matrix, positive semi-definite), by power iteration from `v`, which is
+/// left at its eigenvector. The Rayleigh quotient of a positive semi-definite matrix rises
+/// with every iteration; it stops when a step adds less than 1e-10 of it (its error is then
+/// that step over `1 − (λ₂/λ₁)²`, far below the 0.01 dB a peak is read to), else after
+/// [`POWER_ITERATIONS`] with every eigenvalue computed.
+fn largest_eigenvalue(g: &Mat<c64>, v: &mut [c64]) -> f64 {
+    let n = v.len();
+    let normalise = |v: &mut [c64]| {
+        let norm = v.iter().map(|z| z.norm_sqr()).sum::<f64>().sqrt();
+        if norm > 0.0 && norm.is_finite() {
+            v.iter_mut().for_each(|z| *z /= norm);
+            true
+        } else {
+            false
+        }
+    };
+    if !normalise(v) {
+        v.iter_mut().for_each(|z| *z = c64::new(1.0, 0.0));
+        normalise(v);
+    }
+    let mut rho = 0.0;
+    for _ in 0..POWER_ITERATIONS {
+        let gv: Vec<c64> = (0..n)
+            .map(|a| (0..n).fold(c64::new(0.0, 0.0), |acc, b| acc + g[(a, b)] * v[b]))
+            .collect();
+        let next = v
+            .iter()
+            .zip(&gv)
+            .fold(0.0, |acc, (x, y)| acc + (x.conj() * y).re);
+        v.copy_from_slice(&gv);
+        if !normalise(v) {
+            return 0.0;
+        }
+        if next - rho <= 1e-10 * next.abs() {
+            return next.max(0.0);
+        }
+        rho = next;
+    }
     g.self_adjoint_eigenvalues(Side::Lower)
         .ok()
         .and_then(|v| v.last().copied())
@@ -180,5 +249,55 @@ impl Spectrum {
     /// Width of one frequency line, Hz.
     pub fn resolution_hz(&self) -> f64 {
         self.frequency_hz.get(1).copied().unwrap_or(f64::INFINITY)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    /// The power iteration against the full decomposition, on cross-spectral matrices
+    /// `X Xᴴ` (12 × 12 from 35 segments) of random spectra, and on matrices whose two
+    /// largest eigenvalues are 1 and 0.999 (the slowest case: two modes at one line).
+    /// 1e-6 relative, 4e-6 dB: far below the 0.01 dB a peak is read to.
+    #[test]
+    fn power_iteration_gives_the_largest_eigenvalue() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let mut z = || c64::new(rng.random::<f64>() - 0.5, rng.random::<f64>() - 0.5);
+        for case in 0..20 {
+            let x = Mat::from_fn(12, 35, |_, _| z());
+            let mut g = &x * x.adjoint();
+            if case % 2 == 1 {
+                // Replace the spectrum by 1, 0.999, 0.5 … in the same eigenvectors.
+                let eig = g.self_adjoint_eigen(Side::Lower).unwrap();
+                let u = eig.U();
+                let d = Mat::from_fn(12, 12, |i, j| {
+                    let l = match 11 - i {
+                        0 => 1.0,
+                        1 => 0.999,
+                        k => 0.5 / k as f64,
+                    };
+                    if i == j {
+                        c64::new(l, 0.0)
+                    } else {
+                        c64::new(0.0, 0.0)
+                    }
+                });
+                g = u * &d * u.adjoint();
+            }
+            let exact = g
+                .self_adjoint_eigenvalues(Side::Lower)
+                .unwrap()
+                .last()
+                .copied()
+                .unwrap();
+            let mut v = vec![c64::new(1.0, 0.0); 12];
+            let power = largest_eigenvalue(&g, &mut v);
+            assert!(
+                (power / exact - 1.0).abs() < 1e-6,
+                "case {case}: {power} against {exact}"
+            );
+        }
     }
 }

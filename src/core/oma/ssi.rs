@@ -17,8 +17,9 @@
 //! `|μ| / 2π`, damping ratio `−Re μ / |μ|`, and mode shape `C ψ` for its eigenvector `ψ`.
 //! One SVD serves every model order.
 
-use faer::linalg::solvers::{SolveLstsq, Svd};
+use faer::linalg::solvers::Svd;
 use faer::{Mat, MatRef, Par, c64};
+use rayon::prelude::*;
 
 use super::{OmaError, Record};
 
@@ -182,49 +183,74 @@ pub fn poles_from_svd(
         .map(|k| k * step)
         .take_while(|&n| n <= opts.order_max.min(max_order))
         .collect();
+    // O = U_1 Σ_1^{1/2} at the largest order. One QR of O↑ there gives A of every order
+    // (Döhler & Mevel 2012, fast multi-order SSI): O↑_n = Q_n R_n with the leading columns
+    // and block, so A_n = R_n⁻¹ (Qᵀ O↓)_n, its leading n × n block.
+    let n_top = orders.last().copied().unwrap_or(0);
     let u = svd.U();
-    let mut poles = Vec::new();
-    for &n in &orders {
-        // O = U_1 Σ_1^{1/2}.
-        let o = Mat::from_fn(s * r, n, |i, j| u[(i, j)] * sv[j].sqrt());
-        let up = o.subrows(0, (s - 1) * r).to_owned();
-        let down = o.subrows(r, (s - 1) * r).to_owned();
-        let a = up.qr().solve_lstsq(&down);
-        let eig = a
-            .eigen()
-            .map_err(|e| OmaError::Numerical(format!("eigenvalues of A at order {n}: {e:?}")))?;
-        let (vals, vecs) = (eig.S(), eig.U());
-        for k in 0..n {
-            let lam = vals[k];
-            // One of each conjugate pair; real poles are not modes.
-            if lam.im <= 0.0 {
-                continue;
-            }
-            let mu = c64::new(lam.norm().ln(), lam.im.atan2(lam.re)) * rate_hz;
-            let w = mu.norm();
-            if !w.is_finite() || w == 0.0 {
-                continue;
-            }
-            let shape: Vec<c64> = (0..r)
-                .map(|i| {
-                    (0..n)
-                        .map(|j| vecs[(j, k)] * o[(i, j)])
-                        .fold(c64::new(0.0, 0.0), |acc, x| acc + x)
-                })
-                .collect();
-            poles.push(Pole {
-                order: n,
-                frequency_hz: w / (2.0 * std::f64::consts::PI),
-                damping: -mu.re / w,
-                shape,
-            });
-        }
-    }
+    let o = Mat::from_fn(s * r, n_top, |i, j| u[(i, j)] * sv[j].sqrt());
+    let rows = (s - 1) * r;
+    let qr = o.subrows(0, rows).qr();
+    let qt_down = qr.compute_thin_Q().transpose() * o.subrows(r, rows);
+    let r_top = qr.thin_R();
+    let per_order: Vec<Vec<Pole>> = orders
+        .par_iter()
+        .map(|&n| {
+            let mut a = qt_down.submatrix(0, 0, n, n).to_owned();
+            faer::linalg::triangular_solve::solve_upper_triangular_in_place(
+                r_top.submatrix(0, 0, n, n),
+                a.as_mut(),
+                Par::Seq,
+            );
+            poles_of_order(a.as_ref(), o.as_ref(), r, rate_hz)
+                .map_err(|e| OmaError::Numerical(format!("eigenvalues of A at order {n}: {e}")))
+        })
+        .collect::<Result<_, _>>()?;
+    let poles = per_order.into_iter().flatten().collect();
     Ok(PoleSet {
         orders,
         poles,
         singular_values: sv,
     })
+}
+
+/// The poles of one state matrix `a` (order `n`), shapes from the leading `r` rows of the
+/// observability matrix `o`: one of each conjugate pair; real poles are not modes.
+fn poles_of_order(
+    a: MatRef<'_, f64>,
+    o: MatRef<'_, f64>,
+    r: usize,
+    rate_hz: f64,
+) -> Result<Vec<Pole>, String> {
+    let n = a.nrows();
+    let eig = a.eigen().map_err(|e| format!("{e:?}"))?;
+    let (vals, vecs) = (eig.S(), eig.U());
+    let mut poles = Vec::new();
+    for k in 0..n {
+        let lam = vals[k];
+        if lam.im <= 0.0 {
+            continue;
+        }
+        let mu = c64::new(lam.norm().ln(), lam.im.atan2(lam.re)) * rate_hz;
+        let w = mu.norm();
+        if !w.is_finite() || w == 0.0 {
+            continue;
+        }
+        let shape: Vec<c64> = (0..r)
+            .map(|i| {
+                (0..n)
+                    .map(|j| vecs[(j, k)] * o[(i, j)])
+                    .fold(c64::new(0.0, 0.0), |acc, x| acc + x)
+            })
+            .collect();
+        poles.push(Pole {
+            order: n,
+            frequency_hz: w / (2.0 * std::f64::consts::PI),
+            damping: -mu.re / w,
+            shape,
+        });
+    }
+    Ok(poles)
 }
 
 /// Brings every pole's shape entries to acceleration: entry `i` times `μ^{powers[i]}`, μ

@@ -90,6 +90,37 @@ pub fn accelerations(
     Ok(from_modes(modes, names, opts))
 }
 
+/// Few channels, light damping: 240 s of 6 channels at 256 Hz, nine modes of 0.2 %
+/// damping from 1.1 to 14.6 Hz (two pairs 4 % apart), 2 % sensor noise; the size and kind
+/// of the measured frame in `tests/data/pyoma-frame`.
+pub fn light_damping_frame() -> Synthesized {
+    let freqs = [1.1, 2.3, 3.9, 5.6, 7.4, 7.7, 12.2, 12.7, 14.6];
+    let modes: Vec<TrueMode> = freqs
+        .iter()
+        .enumerate()
+        .map(|(k, &f)| TrueMode {
+            frequency_hz: f,
+            damping: 0.002,
+            shape: (0..6)
+                .map(|c| ((k + 1) as f64 * (c + 1) as f64 * 0.7 + k as f64).sin())
+                .collect(),
+        })
+        .collect();
+    from_modes(
+        modes,
+        (1..=6).map(|c| format!("ch{c}")).collect(),
+        &SynthOptions {
+            rate_hz: 256.0,
+            duration_s: 240.0,
+            damping: 0.002,
+            max_frequency_hz: None,
+            noise_rel: 0.02,
+            seed: 11,
+            quantities: vec![],
+        },
+    )
+}
+
 /// A record of `modes` (each with its own damping; shapes one entry per channel of
 /// `channels`) under white modal forces, as [`accelerations`] simulates a model's:
 /// `opts.damping` and `opts.max_frequency_hz` are not used.

@@ -70,26 +70,9 @@ pub fn block_covariances(
             need: n_blocks.max(2) * 2 * lags + lags,
         });
     }
-    let yr = Mat::from_fn(n, refs.len(), |k, j| y[(k, refs[j])]);
     let per_block: Vec<Vec<Mat<f64>>> = (0..n_blocks)
         .into_par_iter()
-        .map(|b| {
-            let t0 = b * nb;
-            (0..=lags)
-                .map(|i| {
-                    let mut r = Mat::zeros(y.ncols(), refs.len());
-                    faer::linalg::matmul::matmul(
-                        r.as_mut(),
-                        faer::Accum::Replace,
-                        y.subrows(t0 + i, nb).transpose(),
-                        yr.subrows(t0, nb),
-                        1.0 / nb as f64,
-                        Par::Seq,
-                    );
-                    r
-                })
-                .collect()
-        })
+        .map(|b| lagged_products(y.subrows(b * nb, nb + lags), refs, nb, lags))
         .collect();
     let mean: Vec<Mat<f64>> = (0..=lags)
         .map(|i| {
@@ -111,6 +94,43 @@ pub fn block_covariances(
         })
         .collect();
     Ok(BlockCovariances { mean, deltas })
+}
+
+/// `R_i = Σ_{t<nb} y_{t+i} y_{t,ref}ᵀ / nb` for `i = 0 … lags` of `y` (`nb + lags` rows):
+/// per reference one product of `yᵀ` with the Hankel matrix of that reference's samples
+/// (zero-padded `lags` on both sides), whose column `j` is the reference delayed by
+/// `lags − j`. One product per reference rather than one per lag: each operand is packed
+/// for the multiplication once, not `lags + 1` times.
+fn lagged_products(y: MatRef<'_, f64>, refs: &[usize], nb: usize, lags: usize) -> Vec<Mat<f64>> {
+    let mut out = vec![Mat::zeros(y.ncols(), refs.len()); lags + 1];
+    let mut padded = vec![0.0; nb + 2 * lags];
+    let mut product = Mat::zeros(y.ncols(), lags + 1);
+    for (q, &j) in refs.iter().enumerate() {
+        for (p, v) in padded[lags..lags + nb].iter_mut().zip(y.col(j).iter()) {
+            *p = *v;
+        }
+        faer::linalg::matmul::matmul(
+            product.as_mut(),
+            faer::Accum::Replace,
+            y.transpose(),
+            hankel_view(&padded, nb + lags, lags + 1),
+            1.0 / nb as f64,
+            Par::Seq,
+        );
+        for (i, r) in out.iter_mut().enumerate() {
+            r.col_mut(q).copy_from(product.col(lags - i));
+        }
+    }
+    out
+}
+
+/// The `rows × cols` Hankel matrix `H[a, b] = buf[a + b]`, a view of `buf`.
+fn hankel_view(buf: &[f64], rows: usize, cols: usize) -> MatRef<'_, f64> {
+    assert!(rows + cols <= buf.len() + 1 && rows > 0 && cols > 0);
+    // SAFETY: every entry read, `buf[a + b]` with `a < rows`, `b < cols`, lies inside
+    // `buf` (asserted above), which the returned view borrows, so it is initialised and
+    // not written while the view lives; overlapping rows and columns are only read.
+    unsafe { MatRef::from_raw_parts(buf.as_ptr(), rows, cols, 1, 1) }
 }
 
 /// The first-order changes of the observability matrix's projections, one set per block
@@ -165,19 +185,20 @@ pub fn sensitivities(
             let y = d.transpose() * u1;
             let a_hat = u.transpose() * &z;
             let b_hat = v.transpose() * &y;
+            // ΔU₁ = U X + (I − U Uᵀ) Z Σ₁⁻¹ = U (X − Â Σ₁⁻¹) + Z Σ₁⁻¹, one product with U.
             let x = Mat::from_fn(k, n_max, |i, j| {
-                if i == j {
+                let in_span = if i == j {
                     0.0
                 } else {
                     (sig[j] * a_hat[(i, j)] + sig[i] * b_hat[(i, j)])
                         / (sig[j] * sig[j] - sig[i] * sig[i])
-                }
+                };
+                in_span - a_hat[(i, j)] / sig[j]
             });
             let mut du = u * &x;
-            let resid = &z - u * &a_hat;
             for j in 0..n_max {
                 for i in 0..m {
-                    du[(i, j)] += resid[(i, j)] / sig[j];
+                    du[(i, j)] += z[(i, j)] / sig[j];
                 }
             }
             let d_o = Mat::from_fn(m, n_max, |i, j| {
@@ -244,18 +265,7 @@ impl Sensitivities {
     /// The pole of order `n` nearest to `frequency_hz` (`Im λ > 0`), with its standard
     /// deviations.
     pub fn mode_near(&self, o: &OrderSolve, frequency_hz: f64) -> Option<ModeStd> {
-        let f = |l: c64| {
-            (c64::new(l.norm().ln(), l.im.atan2(l.re)) * self.rate_hz).norm()
-                / (2.0 * std::f64::consts::PI)
-        };
-        (0..o.n)
-            .filter(|&j| o.lam[j].im > 0.0)
-            .min_by(|&a, &b| {
-                (f(o.lam[a]) - frequency_hz)
-                    .abs()
-                    .total_cmp(&(f(o.lam[b]) - frequency_hz).abs())
-            })
-            .map(|j| self.mode_std(o, j))
+        self.nearest(o, frequency_hz).map(|j| self.mode_std(o, j))
     }
 
     /// The state matrix of order `n` (`A = M⁻¹N`) and its eigen-decomposition.
@@ -297,39 +307,43 @@ impl Sensitivities {
         })
     }
 
+    /// The first-order σ of the frequency of the pole of `o` nearest `frequency_hz`, and
+    /// that pole's frequency: what choosing among a cluster's poles needs, without the
+    /// shape's terms.
+    pub fn frequency_std_near(&self, o: &OrderSolve, frequency_hz: f64) -> Option<(f64, f64)> {
+        let j = self.nearest(o, frequency_hz)?;
+        let pole = PoleTerms::new(self, o, j);
+        let var = self
+            .q
+            .iter()
+            .map(|qk| {
+                let w = pole.w(qk, o.n);
+                let df = pole.frequency_change(pole.eigenvalue_change(&w));
+                df * df
+            })
+            .sum::<f64>();
+        Some((pole.wabs / (2.0 * std::f64::consts::PI), var.sqrt()))
+    }
+
     /// Pole `j` of an order's decomposition with its standard deviations.
     fn mode_std(&self, o: &OrderSolve, j: usize) -> ModeStd {
         let (n, r) = (o.n, self.r);
-        let (lam, psi, p, c_psi) = (&o.lam, &o.psi, &o.p, &o.c_psi);
-        let dt = 1.0 / self.rate_hz;
-        let l = lam[j];
-        let mu = c64::new(l.norm().ln(), l.im.atan2(l.re)) * self.rate_hz;
-        let wabs = mu.norm();
-        let psi_j: Vec<c64> = (0..n).map(|i| psi[(i, j)]).collect();
-        // φ_i μ^{p_i}: every entry as an acceleration (`powers`), and its derivative
-        // along μ for the first-order terms below.
-        let scale: Vec<c64> = self.powers.iter().map(|&p| mu.powi(p)).collect();
-        let dscale: Vec<c64> = self
-            .powers
-            .iter()
-            .map(|&p| {
-                if p == 0 {
-                    c64::new(0.0, 0.0)
-                } else {
-                    mu.powi(p - 1) * p as f64
-                }
-            })
-            .collect();
-        let raw: Vec<c64> = (0..r).map(|i| c_psi[(i, j)]).collect();
-        let phi: Vec<c64> = raw.iter().zip(&scale).map(|(z, s_)| z * s_).collect();
-        // g = ℓ_j M⁻¹ (row j of P); K = C Ψ Γ_j P.
-        let g: Vec<c64> = (0..n).map(|i| p[(j, i)]).collect();
-        let kmat = Mat::from_fn(r, n, |a_, b_| {
-            (0..n)
-                .filter(|&i| i != j)
-                .map(|i| c_psi[(a_, i)] * p[(i, b_)] / (l - lam[i]))
-                .fold(c64::new(0.0, 0.0), |acc, x| acc + x)
+        let pole = PoleTerms::new(self, o, j);
+        // K = C Ψ Γ_j P, Γ_j = diag(1/(λ_j − λ_i)), 0 at i = j.
+        let gamma = Mat::from_fn(n, n, |a, b| {
+            if a == b && a != j {
+                (pole.l - o.lam[a]).inv()
+            } else {
+                c64::new(0.0, 0.0)
+            }
         });
+        let kmat = &o.c_psi * &gamma * &o.p;
+        let phi: Vec<c64> = pole
+            .raw
+            .iter()
+            .zip(&pole.scale)
+            .map(|(z, s_)| z * s_)
+            .collect();
         let kappa = (0..r)
             .max_by(|&a_, &b_| phi[a_].norm().total_cmp(&phi[b_].norm()))
             .expect("r > 0");
@@ -340,34 +354,20 @@ impl Sensitivities {
         let (mut vf, mut vz) = (0.0, 0.0);
         let mut vshape = vec![0.0; r];
         for qk in &self.q {
-            let [q1, q2, q3, q4] = qk;
-            // w = (Q3 − λQ1)ψ + (Q2 − λQ1)ᵀψ.
-            let w: Vec<c64> = (0..n)
-                .map(|a_| {
-                    (0..n)
-                        .map(|b_| {
-                            (c64::new(q3[(a_, b_)], 0.0) - l * q1[(a_, b_)]) * psi_j[b_]
-                                + (c64::new(q2[(b_, a_)], 0.0) - l * q1[(b_, a_)]) * psi_j[b_]
-                        })
-                        .fold(c64::new(0.0, 0.0), |acc, x| acc + x)
-                })
-                .collect();
-            let dl = g
-                .iter()
-                .zip(&w)
-                .fold(c64::new(0.0, 0.0), |acc, (a_, b_)| acc + a_ * b_);
-            let dmu = dl / (l * dt);
-            let df = (mu.conj() * dmu).re / (2.0 * std::f64::consts::PI * wabs);
-            let dz = (-(mu.im * mu.im) * dmu.re + mu.re * mu.im * dmu.im) / wabs.powi(3);
+            let w = pole.w(qk, n);
+            let dmu = pole.eigenvalue_change(&w);
+            let df = pole.frequency_change(dmu);
+            let mu = pole.mu;
+            let dz = (-(mu.im * mu.im) * dmu.re + mu.re * mu.im * dmu.im) / pole.wabs.powi(3);
             vf += df * df;
             vz += dz * dz;
+            // dφ = (Q4 ψ_j + K w) scaled per channel, plus the scale's change along μ.
+            let q4psi = qk[3].subcols(0, n) * &pole.psi_ri;
+            let kw = &kmat * &w;
             let dphi: Vec<c64> = (0..r)
                 .map(|a_| {
-                    (0..n)
-                        .map(|b_| psi_j[b_] * q4[(a_, b_)] + kmat[(a_, b_)] * w[b_])
-                        .fold(c64::new(0.0, 0.0), |acc, x| acc + x)
-                        * scale[a_]
-                        + raw[a_] * dscale[a_] * dmu
+                    (c64::new(q4psi[(a_, 0)], q4psi[(a_, 1)]) + kw[(a_, 0)]) * pole.scale[a_]
+                        + pole.raw[a_] * pole.dscale[a_] * dmu
                 })
                 .collect();
             let dalpha = (dphi[kappa] / phi[kappa]).im;
@@ -387,13 +387,111 @@ impl Sensitivities {
             }
         }
         ModeStd {
-            frequency_hz: wabs / (2.0 * std::f64::consts::PI),
+            frequency_hz: pole.wabs / (2.0 * std::f64::consts::PI),
             frequency_std: vf.sqrt(),
-            damping: -mu.re / wabs,
+            damping: -pole.mu.re / pole.wabs,
             damping_std: vz.sqrt(),
             shape: hat.iter().map(|z| z.re).collect(),
             shape_std: vshape.iter().map(|v| v.sqrt()).collect(),
         }
+    }
+
+    /// The pole (`Im λ > 0`) of `o` nearest `frequency_hz`.
+    fn nearest(&self, o: &OrderSolve, frequency_hz: f64) -> Option<usize> {
+        (0..o.n).filter(|&j| o.lam[j].im > 0.0).min_by(|&a, &b| {
+            (self.continuous(o.lam[a]).norm() - 2.0 * std::f64::consts::PI * frequency_hz)
+                .abs()
+                .total_cmp(
+                    &(self.continuous(o.lam[b]).norm() - 2.0 * std::f64::consts::PI * frequency_hz)
+                        .abs(),
+                )
+        })
+    }
+
+    /// The continuous pole `μ = ln(λ)·f_s` of a discrete one.
+    fn continuous(&self, l: c64) -> c64 {
+        c64::new(l.norm().ln(), l.im.atan2(l.re)) * self.rate_hz
+    }
+}
+
+/// What every block's first-order terms of one pole share (module docs, step 4).
+struct PoleTerms {
+    /// Discrete and continuous pole, `|μ|`.
+    l: c64,
+    mu: c64,
+    wabs: f64,
+    dt: f64,
+    /// `ψ_j` as an `n × 2` real matrix (real and imaginary parts).
+    psi_ri: Mat<f64>,
+    /// `g = ℓ_j M⁻¹` (row `j` of `P`).
+    g: Vec<c64>,
+    /// `C ψ_j` and, per channel, `μ^{p_i}` and its derivative along `μ`.
+    raw: Vec<c64>,
+    scale: Vec<c64>,
+    dscale: Vec<c64>,
+}
+
+impl PoleTerms {
+    fn new(sens: &Sensitivities, o: &OrderSolve, j: usize) -> Self {
+        let n = o.n;
+        let l = o.lam[j];
+        let mu = sens.continuous(l);
+        let scale = sens.powers.iter().map(|&p| mu.powi(p)).collect();
+        let dscale = sens
+            .powers
+            .iter()
+            .map(|&p| {
+                if p == 0 {
+                    c64::new(0.0, 0.0)
+                } else {
+                    mu.powi(p - 1) * p as f64
+                }
+            })
+            .collect();
+        PoleTerms {
+            l,
+            mu,
+            wabs: mu.norm(),
+            dt: 1.0 / sens.rate_hz,
+            psi_ri: Mat::from_fn(n, 2, |i, c| {
+                let z = o.psi[(i, j)];
+                if c == 0 { z.re } else { z.im }
+            }),
+            g: (0..n).map(|i| o.p[(j, i)]).collect(),
+            raw: (0..sens.r).map(|i| o.c_psi[(i, j)]).collect(),
+            scale,
+            dscale,
+        }
+    }
+
+    /// `w = (Q3 − λQ1)ψ + (Q2 − λQ1)ᵀψ` of one block, as an `n × 1` column.
+    fn w(&self, qk: &[Mat<f64>; 4], n: usize) -> Mat<c64> {
+        let [q1, q2, q3, _] = qk;
+        let (q1, q2, q3) = (
+            q1.submatrix(0, 0, n, n),
+            q2.submatrix(0, 0, n, n),
+            q3.submatrix(0, 0, n, n),
+        );
+        let m = q3 * &self.psi_ri + q2.transpose() * &self.psi_ri;
+        let s = q1 * &self.psi_ri + q1.transpose() * &self.psi_ri;
+        Mat::from_fn(n, 1, |a, _| {
+            c64::new(m[(a, 0)], m[(a, 1)]) - self.l * c64::new(s[(a, 0)], s[(a, 1)])
+        })
+    }
+
+    /// The change of the continuous pole `μ` for a block's `w`: `Δλ = g w`, `Δμ = Δλ/(λ Δt)`.
+    fn eigenvalue_change(&self, w: &Mat<c64>) -> c64 {
+        let dl = self
+            .g
+            .iter()
+            .enumerate()
+            .fold(c64::new(0.0, 0.0), |acc, (a, g)| acc + g * w[(a, 0)]);
+        dl / (self.l * self.dt)
+    }
+
+    /// The change of the frequency (Hz) for a change `dmu` of `μ`.
+    fn frequency_change(&self, dmu: c64) -> f64 {
+        (self.mu.conj() * dmu).re / (2.0 * std::f64::consts::PI * self.wabs)
     }
 }
 
