@@ -410,6 +410,49 @@ mod tests {
         }
     }
 
+    /// The state matrices of every order from one QR at the largest order against a
+    /// least-squares solve at each order: the same poles to 1e-9 relative in frequency and
+    /// 1e-6 in damping (rounding of two different factorisations of the same system).
+    #[test]
+    fn one_qr_gives_the_poles_of_every_order() {
+        use faer::linalg::solvers::SolveLstsq;
+        let modes = [
+            (5.0, 0.02, [1.0, 0.6, -0.3]),
+            (12.0, 0.03, [0.4, -1.0, 0.8]),
+        ];
+        let record = ar2_record(100.0, &modes, 20_000, 2, 0.3);
+        let cov = output_covariances(record.samples.as_ref(), &[0, 1, 2], 19);
+        let svd = hankel_svd(block_hankel(&cov, 10).as_ref()).unwrap();
+        let opts = SsiOptions {
+            block_rows: 10,
+            order_max: 12,
+            order_step: 2,
+            references: vec![],
+        };
+        let set = poles_from_svd(&svd, 3, 100.0, &opts).unwrap();
+        let (u, sv) = (svd.U(), svd.S().column_vector());
+        for &n in &set.orders {
+            let o = Mat::from_fn(30, n, |i, j| u[(i, j)] * sv[j].sqrt());
+            let a = o.subrows(0, 27).qr().solve_lstsq(o.subrows(3, 27));
+            let mut direct: Vec<c64> = a
+                .eigenvalues()
+                .unwrap()
+                .into_iter()
+                .filter(|l| l.im > 0.0)
+                .map(|l| c64::new(l.norm().ln(), l.im.atan2(l.re)) * 100.0)
+                .collect();
+            direct.sort_by(|a, b| a.norm().total_cmp(&b.norm()));
+            let mut fast: Vec<&Pole> = set.poles.iter().filter(|p| p.order == n).collect();
+            fast.sort_by(|a, b| a.frequency_hz.total_cmp(&b.frequency_hz));
+            assert_eq!(fast.len(), direct.len(), "order {n}");
+            for (p, mu) in fast.iter().zip(&direct) {
+                let f = mu.norm() / (2.0 * std::f64::consts::PI);
+                assert!((p.frequency_hz / f - 1.0).abs() < 1e-9, "order {n}: {f}");
+                assert!((p.damping - (-mu.re / mu.norm())).abs() < 1e-6, "order {n}");
+            }
+        }
+    }
+
     #[test]
     fn a_real_shape_is_rotated_back_and_its_mpc_is_one() {
         let v = [1.0, -0.5, 0.25];

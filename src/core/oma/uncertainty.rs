@@ -520,6 +520,30 @@ pub fn identify_with_sensitivities(
 mod tests {
     use super::*;
 
+    /// The lag products by Hankel view against their definition `Σ_t y_{t+i} y_{t,ref}ᵀ / nb`,
+    /// every lag and reference; 1e-12 relative: both sum the same products, in another order.
+    #[test]
+    fn lagged_products_match_their_definition() {
+        let rec = record(3, 400);
+        let (nb, lags, refs) = (300, 7, [2usize, 0]);
+        let y = rec.samples.subrows(5, nb + lags);
+        let fast = lagged_products(y, &refs, nb, lags);
+        for (i, r) in fast.iter().enumerate() {
+            for (q, &j) in refs.iter().enumerate() {
+                for c in 0..y.ncols() {
+                    let direct =
+                        (0..nb).map(|t| y[(t + i, c)] * y[(t, j)]).sum::<f64>() / nb as f64;
+                    let scale = direct.abs().max(1e-3);
+                    assert!(
+                        (r[(c, q)] - direct).abs() < 1e-12 * scale.max(1.0),
+                        "lag {i}, channel {c}, reference {j}: {} against {direct}",
+                        r[(c, q)]
+                    );
+                }
+            }
+        }
+    }
+
     /// Two modes as discrete AR(2) processes seen by three channels with noise.
     fn record(seed: u64, n: usize) -> Record {
         let modes = [(1.9, 0.02, [1.0, 0.6, -0.3]), (4.7, 0.02, [0.4, -1.0, 0.8])];
