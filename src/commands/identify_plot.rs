@@ -170,7 +170,7 @@ fn draw_band<DB: DrawingBackend>(
     draw_poles(&mut chart, band)?;
     chart
         .configure_series_labels()
-        .position(SeriesLabelPosition::UpperLeft)
+        .position(SeriesLabelPosition::LowerRight)
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK)
         .label_font((FONT, 13))
