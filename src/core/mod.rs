@@ -5,6 +5,7 @@
 pub mod diagnosis;
 pub mod modal;
 pub mod model;
+pub mod normalisation;
 pub mod oma;
 pub mod simulate;
 pub mod stats;
