@@ -295,6 +295,7 @@ impl Scenario {
                 )),
                 missing: Vec::new(),
                 unexplained_peaks: Vec::new(),
+        covariates: Default::default(),
             };
             sink(k, set, &theta)?;
         }

@@ -131,6 +131,7 @@ pub fn run(args: &SimulateArgs) -> Result<()> {
         )),
         missing: Vec::new(),
         unexplained_peaks: Vec::new(),
+        covariates: Default::default(),
     };
     write_json(&args.out, &set.to_json())?;
     println!(

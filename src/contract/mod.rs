@@ -15,6 +15,8 @@ pub mod alert;
 pub mod checkpoint;
 pub mod crosscheck;
 pub mod diagnosis;
+pub mod environment;
+mod fields;
 pub mod modal_set;
 mod nonfinite;
 pub mod rejected;

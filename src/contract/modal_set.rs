@@ -8,10 +8,15 @@
 //! with the data. Payloads from Python's `json.dumps` may carry bare `NaN`, `Infinity` and
 //! `-Infinity`; these are recognised (outside string literals only) and rejected by field.
 
-use chrono::{DateTime, SecondsFormat, Utc};
+use chrono::{DateTime, Utc};
 use serde_json::{Map, Value};
 
-use super::nonfinite::{nonfinite_reason, nonfinite_token, sanitize};
+use super::fields::{
+    format_time, json_object, kind, no_unknown_fields, number, positive, reject, required, string,
+    time_field,
+};
+pub use super::fields::capped;
+use super::nonfinite::nonfinite_token;
 
 /// The value of the `schema` field of every modal set.
 pub const MODAL_SET_SCHEMA: &str = "boltwatch.modal_set.v1";
@@ -48,6 +53,7 @@ const TOP_FIELDS: &[&str] = &[
     "source",
     "missing",
     "unexplained_peaks",
+    "covariates",
 ];
 
 /// Fields of one mode.
@@ -74,8 +80,12 @@ pub struct ModalSet {
     pub channels: Vec<String>,
     /// The modes, by increasing frequency (within [`FREQUENCY_ORDER_TOLERANCE`]).
     pub modes: Vec<MeasuredMode>,
-    /// Temperature of the structure during the measurement, °C.
+    /// Temperature of the structure during the measurement, °C (within
+    /// [`super::environment::TEMPERATURE_RANGE_C`]).
     pub temperature_c: Option<f64>,
+    /// Other conditions of the measurement by name (humidity, traffic RMS, …;
+    /// [`super::environment::Conditions`]). Empty when not given.
+    pub covariates: std::collections::BTreeMap<String, f64>,
     /// Free-text provenance (e.g. the identification run).
     pub source: Option<String>,
     /// Labels of modes identified in earlier sets of this source and not in this one
@@ -149,68 +159,6 @@ pub struct ValidationContext<'a> {
     pub max_future: Option<(DateTime<Utc>, chrono::TimeDelta)>,
 }
 
-/// `text` cut to at most `limit` bytes (at a character boundary), with `…` when cut.
-pub fn capped(text: &str, limit: usize) -> String {
-    if text.len() <= limit {
-        return text.to_string();
-    }
-    let mut cut = limit.saturating_sub('…'.len_utf8());
-    while !text.is_char_boundary(cut) {
-        cut -= 1;
-    }
-    format!("{}…", &text[..cut])
-}
-
-fn reject(field: impl Into<String>, reason: impl Into<String>) -> Rejection {
-    Rejection {
-        field: capped(&field.into(), FIELD_LIMIT),
-        reason: capped(&reason.into(), REASON_LIMIT),
-    }
-}
-
-/// What kind of JSON value `v` is, for "expected …, got …" reasons.
-fn kind(v: &Value) -> String {
-    if let Some(token) = nonfinite_token(v) {
-        return format!("a non-finite number ({token})");
-    }
-    match v {
-        Value::Null => "null",
-        Value::Bool(_) => "a boolean",
-        Value::Number(_) => "a number",
-        Value::String(_) => "a string",
-        Value::Array(_) => "an array",
-        Value::Object(_) => "an object",
-    }
-    .to_string()
-}
-
-/// A finite number, or a rejection naming `field`.
-fn number(v: &Value, field: &str) -> Result<f64, Rejection> {
-    if let Some(token) = nonfinite_token(v) {
-        return Err(reject(field, nonfinite_reason(token)));
-    }
-    match v {
-        Value::Number(n) => match n.as_f64() {
-            Some(x) if x.is_finite() => Ok(x),
-            _ => Err(reject(field, format!("not a finite number ({n})"))),
-        },
-        other => Err(reject(
-            field,
-            format!("expected a number, got {}", kind(other)),
-        )),
-    }
-}
-
-/// A finite number > 0, or a rejection naming `field`.
-fn positive(v: &Value, field: &str) -> Result<f64, Rejection> {
-    let x = number(v, field)?;
-    if x > 0.0 {
-        Ok(x)
-    } else {
-        Err(reject(field, format!("must be > 0, got {x}")))
-    }
-}
-
 /// An uncertainty (a CoV or an NSD): a finite number ≥ [`UNCERTAINTY_FLOOR`].
 fn uncertainty(v: &Value, field: &str) -> Result<f64, Rejection> {
     let x = positive(v, field)?;
@@ -226,46 +174,6 @@ fn uncertainty(v: &Value, field: &str) -> Result<f64, Rejection> {
     }
 }
 
-/// A string (not a substituted non-finite number), or a rejection naming `field`.
-fn string<'v>(v: &'v Value, field: &str) -> Result<&'v str, Rejection> {
-    match v {
-        Value::String(s) if nonfinite_token(v).is_none() => Ok(s),
-        other => Err(reject(
-            field,
-            format!("expected a string, got {}", kind(other)),
-        )),
-    }
-}
-
-/// The field `key` of `obj`, or a "missing" rejection naming `path`.
-fn required<'v>(
-    obj: &'v Map<String, Value>,
-    key: &str,
-    path: &str,
-) -> Result<&'v Value, Rejection> {
-    obj.get(key)
-        .ok_or_else(|| reject(path, "missing (required)"))
-}
-
-/// Rejects the first field of `obj` not in `allowed`.
-fn no_unknown_fields(
-    obj: &Map<String, Value>,
-    allowed: &[&str],
-    prefix: &str,
-) -> Result<(), Rejection> {
-    match obj.keys().find(|k| !allowed.contains(&k.as_str())) {
-        Some(k) => Err(reject(
-            format!("{prefix}{}", k.escape_debug()),
-            format!("unknown field (allowed: {})", allowed.join(", ")),
-        )),
-        None => Ok(()),
-    }
-}
-
-fn format_time(t: &DateTime<Utc>) -> String {
-    t.to_rfc3339_opts(SecondsFormat::AutoSi, true)
-}
-
 /// Parses and validates a payload. Never panics on any input bytes.
 ///
 /// Rejections (field / reason):
@@ -278,7 +186,10 @@ fn format_time(t: &DateTime<Utc>) -> String {
 /// - `channels[j]`: not a string, not a channel of the model, or a duplicate;
 /// - `modes`: missing, not an array or empty; `modes[i]` not an object;
 /// - any number (`frequency_hz`, `frequency_cov`, shape entries, `shape_nsd`,
-///   `temperature_c`) not finite (bare `NaN`/`Infinity`, overflow) or of the wrong type;
+///   `temperature_c`, covariates) not finite (bare `NaN`/`Infinity`, overflow) or of the
+///   wrong type;
+/// - `temperature_c` outside [`super::environment::TEMPERATURE_RANGE_C`]; `covariates` not
+///   an object of named numbers ([`super::environment::Conditions`]);
 /// - `modes[i].frequency_hz`: ≤ 0, or below the previous mode's frequency by more than
 ///   [`FREQUENCY_ORDER_TOLERANCE`] (relative);
 /// - `modes[i].frequency_cov`, `modes[i].shape_nsd`: ≤ 0, or present on some modes (with a
@@ -290,16 +201,7 @@ fn format_time(t: &DateTime<Utc>) -> String {
 /// `null` is accepted only as a shape entry: an optional field is either present with a
 /// value or absent.
 pub fn parse_modal_set(payload: &[u8], ctx: &ValidationContext) -> Result<ModalSet, Rejection> {
-    let text =
-        std::str::from_utf8(payload).map_err(|e| reject("payload", format!("not UTF-8: {e}")))?;
-    let value: Value = serde_json::from_str(&sanitize(text))
-        .map_err(|e| reject("payload", format!("not JSON: {e}")))?;
-    let Value::Object(obj) = value else {
-        return Err(reject(
-            "payload",
-            format!("expected a JSON object, got {}", kind(&value)),
-        ));
-    };
+    let obj = json_object(payload)?;
 
     // schema
     let schema = required(&obj, "schema", "schema")?;
@@ -328,24 +230,7 @@ pub fn parse_modal_set(payload: &[u8], ctx: &ValidationContext) -> Result<ModalS
     }
 
     // time
-    let time_text = string(required(&obj, "time", "time")?, "time")?;
-    let time = DateTime::parse_from_rfc3339(time_text)
-        .map_err(|e| {
-            reject(
-                "time",
-                format!("{time_text:?} is not an RFC 3339 time: {e}"),
-            )
-        })?
-        .with_timezone(&Utc);
-    if !super::wire::representable(time) {
-        return Err(reject(
-            "time",
-            format!(
-                "{time_text:?} is outside the range every output format holds ({})",
-                super::wire::TIME_RANGE
-            ),
-        ));
-    }
+    let time = time_field(&obj)?;
     if let Some((now, ahead)) = ctx.max_future
         && time > now + ahead
     {
@@ -442,10 +327,10 @@ pub fn parse_modal_set(payload: &[u8], ctx: &ValidationContext) -> Result<ModalS
     check_frequency_order(&modes)?;
     check_uncertainty_consistency(&modes)?;
 
-    let temperature_c = obj
-        .get("temperature_c")
-        .map(|v| number(v, "temperature_c"))
-        .transpose()?;
+    let super::environment::Conditions {
+        temperature_c,
+        covariates,
+    } = super::environment::Conditions::parse(&obj)?;
     let source = obj
         .get("source")
         .map(|v| string(v, "source").map(str::to_string))
@@ -490,6 +375,7 @@ pub fn parse_modal_set(payload: &[u8], ctx: &ValidationContext) -> Result<ModalS
         channels,
         modes,
         temperature_c,
+        covariates,
         source,
         missing,
         unexplained_peaks,
@@ -841,6 +727,14 @@ impl ModalSet {
     /// The set as a `boltwatch.modal_set.v1` JSON value (absent optionals omitted, unmeasured entries `null`), which parse_modal_set accepts back unchanged. time formatted RFC 3339 with `Z`, seconds precision unless sub-seconds are present.
     ///
     /// `channels` is omitted when empty. Numbers are written with the shortest
+    /// The measurement's own conditions (temperature and covariates).
+    pub fn conditions(&self) -> super::environment::Conditions {
+        super::environment::Conditions {
+            temperature_c: self.temperature_c,
+            covariates: self.covariates.clone(),
+        }
+    }
+
     /// representation that reads back to the same `f64`.
     pub fn to_json(&self) -> Value {
         let mut obj = Map::new();
@@ -889,9 +783,7 @@ impl ModalSet {
             })
             .collect();
         obj.insert("modes".into(), Value::Array(modes));
-        if let Some(t) = self.temperature_c {
-            obj.insert("temperature_c".into(), t.into());
-        }
+        self.conditions().write(&mut obj);
         if let Some(s) = &self.source {
             obj.insert("source".into(), s.clone().into());
         }

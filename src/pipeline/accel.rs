@@ -415,6 +415,7 @@ pub fn modal_set(
         source: Some(source),
         missing: Vec::new(),
         unexplained_peaks: Vec::new(),
+        covariates: Default::default(),
     }
 }
 

@@ -144,6 +144,7 @@ fn round_trip_keeps_sub_seconds_and_awkward_floats() {
         source: None,
         missing: vec!["mode 2".into()],
         unexplained_peaks: Vec::new(),
+        covariates: Default::default(),
     };
     let json = set.to_json();
     assert_eq!(json["time"], "2026-11-21T10:00:00.123456Z");
