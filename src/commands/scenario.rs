@@ -27,12 +27,12 @@ pub struct ScenarioArgs {
     /// Model the sets are simulated from.
     #[arg(long, default_value = "config/models/lab-frame.toml")]
     pub model: PathBuf,
-    /// Number of modal sets.
-    #[arg(long, default_value_t = 10_000)]
-    pub sets: usize,
-    /// Days the sets span.
-    #[arg(long, default_value_t = 60.0)]
-    pub days: f64,
+    /// Number of modal sets (default 10,000; seasonal: four a day).
+    #[arg(long)]
+    pub sets: Option<usize>,
+    /// Days the sets span (default 60; seasonal: 730).
+    #[arg(long)]
+    pub days: Option<f64>,
     /// Random seed (ChaCha8).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -48,6 +48,16 @@ pub struct ScenarioArgs {
     /// Day the event starts (loosening: 40; sudden, mass: 30).
     #[arg(long)]
     pub event_day: Option<f64>,
+    /// Seasonal: a connection parameter that loses `--drop` of its stiffness at once on
+    /// `--day`.
+    #[arg(long, requires = "drop", requires = "day")]
+    pub loosen: Option<String>,
+    /// Seasonal: the fraction lost by `--loosen`, in (0, 1).
+    #[arg(long, requires = "loosen")]
+    pub drop: Option<f64>,
+    /// Seasonal: the day `--loosen` loses it, from the start.
+    #[arg(long, requires = "loosen")]
+    pub day: Option<f64>,
     /// Significant digits kept of the shape entries (smaller files; 0: all).
     #[arg(long, default_value_t = 0)]
     pub shape_digits: u32,
@@ -111,11 +121,13 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
             NAMES.join(", ")
         );
     }
-    if args.sets == 0 {
+    if args.sets == Some(0) {
         bail!("--sets must be at least 1");
     }
-    if !(args.days.is_finite() && args.days > 0.0) {
-        bail!("--days = {} must be a finite number > 0", args.days);
+    if let Some(d) = args.days
+        && !(d.is_finite() && d > 0.0)
+    {
+        bail!("--days = {d} must be a finite number > 0");
     }
     let text = std::fs::read_to_string(&args.model)
         .with_context(|| format!("cannot read model file {}", args.model.display()))?;
@@ -135,10 +147,7 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
         args.connection.as_deref(),
         args.at.as_deref(),
     )?;
-    sc.sets = args.sets;
-    sc.days = args.days;
-    sc.seed = args.seed;
-    sc.modes = args.modes;
+    settle(&mut sc, args, &model)?;
     if let Some(d) = args.event_day {
         if !(d.is_finite() && d >= 0.0) {
             bail!("--event-day = {d} must be a finite number ≥ 0");
@@ -261,6 +270,57 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
         bytes as f64 / 1e6,
         args.out.display()
     );
+    Ok(())
+}
+
+/// The scenario's size, seed and modes from the options, and the seasonal loss: per set
+/// four a day when only `--days` is given to the seasonal scenario.
+fn settle(sc: &mut Scenario, args: &ScenarioArgs, model: &Model) -> Result<()> {
+    let seasonal = sc.seasons.is_some();
+    if let Some(d) = args.days {
+        if seasonal && args.sets.is_none() {
+            sc.sets = (4.0 * d).round().max(1.0) as usize;
+        }
+        sc.days = d;
+    }
+    if let Some(n) = args.sets {
+        sc.sets = n;
+    }
+    sc.seed = args.seed;
+    sc.modes = args.modes;
+    if seasonal {
+        sc.reseason(model);
+    }
+    let Some(name) = &args.loosen else {
+        return Ok(());
+    };
+    if !seasonal {
+        bail!("--loosen is an event of the seasonal scenario (the others have --connection)");
+    }
+    let (drop, day) = (args.drop.unwrap_or(f64::NAN), args.day.unwrap_or(f64::NAN));
+    if !(drop > 0.0 && drop < 1.0) {
+        bail!("--drop = {drop} must be a fraction in (0, 1)");
+    }
+    if !(day.is_finite() && day >= 0.0) {
+        bail!("--day = {day} must be a finite number ≥ 0");
+    }
+    let parameter = model
+        .parameters()
+        .iter()
+        .position(|p| {
+            &p.name == name && matches!(p.kind, crate::core::model::ParameterKind::Connections(_))
+        })
+        .with_context(|| {
+            format!(
+                "--loosen {name}: not a connection parameter of {}",
+                model.name
+            )
+        })?;
+    sc.event = Event::Sudden {
+        parameter,
+        day,
+        loss: drop,
+    };
     Ok(())
 }
 

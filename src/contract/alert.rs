@@ -85,6 +85,12 @@ pub enum AlertDetail {
         drop: f64,
         /// Raised while the model is flagged inadequate.
         model_inadequate: bool,
+        /// With normalisation: the θ expected under the set's conditions (`drop` is then
+        /// the loss against it) and those conditions.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        expected: Option<f64>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        conditions: Option<String>,
     },
     /// ε against its χ² bound; after a warning, the diagnosis verdict.
     Inadequacy {

@@ -32,12 +32,14 @@ pub const MAX_COVARIATES: usize = 16;
 pub const TEMPERATURE: &str = "temperature_c";
 
 /// The conditions of a measurement.
-#[derive(Debug, Clone, Default, PartialEq)]
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Conditions {
     /// Temperature of the structure, °C.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub temperature_c: Option<f64>,
     /// Other covariates by name (humidity, traffic RMS, a second temperature, …), in the
     /// units of their source.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub covariates: BTreeMap<String, f64>,
 }
 
@@ -49,6 +51,17 @@ impl Conditions {
         } else {
             self.covariates.get(name).copied()
         }
+    }
+
+    /// For a message: `-4.3 °C`, `-4.3 °C, humidity 81`.
+    pub fn describe(&self) -> String {
+        let mut parts: Vec<String> = self
+            .temperature_c
+            .iter()
+            .map(|t| format!("{t:.1} °C"))
+            .collect();
+        parts.extend(self.covariates.iter().map(|(k, v)| format!("{k} {v}")));
+        parts.join(", ")
     }
 
     /// Nothing measured.

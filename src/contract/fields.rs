@@ -27,7 +27,7 @@ pub(crate) fn json_object(payload: &[u8]) -> Result<Map<String, Value>, Rejectio
 
 /// The required `time` field: an RFC 3339 time every output format holds.
 pub(crate) fn time_field(obj: &Map<String, Value>) -> Result<DateTime<Utc>, Rejection> {
-    let time_text = string(required(&obj, "time", "time")?, "time")?;
+    let time_text = string(required(obj, "time", "time")?, "time")?;
     let time = DateTime::parse_from_rfc3339(time_text)
         .map_err(|e| {
             reject(
@@ -149,4 +149,3 @@ pub(crate) fn no_unknown_fields(
 pub(crate) fn format_time(t: &DateTime<Utc>) -> String {
     t.to_rfc3339_opts(SecondsFormat::AutoSi, true)
 }
-

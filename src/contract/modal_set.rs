@@ -11,11 +11,11 @@
 use chrono::{DateTime, Utc};
 use serde_json::{Map, Value};
 
+pub use super::fields::capped;
 use super::fields::{
     format_time, json_object, kind, no_unknown_fields, number, positive, reject, required, string,
     time_field,
 };
-pub use super::fields::capped;
 use super::nonfinite::nonfinite_token;
 
 /// The value of the `schema` field of every modal set.

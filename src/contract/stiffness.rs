@@ -30,7 +30,16 @@ pub struct Estimate {
     pub epsilon: f64,
     /// Its χ² bound.
     pub epsilon_bound: f64,
+    /// The temperature the set was judged under, °C (its own, else an environment
+    /// reading's).
     pub temperature_c: Option<f64>,
+    /// The other covariates it was judged under; absent when none.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub covariates: std::collections::BTreeMap<String, f64>,
+    /// How the parameters were normalised for the conditions; absent when normalisation
+    /// is off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub normalisation: Option<NormalisationDoc>,
     pub parameters: Vec<ParameterEstimate>,
     pub modes: Vec<ModeComparison>,
     /// Present when the fit weighed the data by σ rescaled per data group (ε under the
@@ -94,6 +103,55 @@ pub struct ParameterEstimate {
     /// data do not resolve on its own); absent otherwise.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub alerts_off: Option<String>,
+    /// θ against what a healthy structure is expected to have under this set's conditions;
+    /// absent when normalisation is off or has no expectation yet.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub normalised: Option<NormalisedLevel>,
+}
+
+/// Which model gave the expectations of an estimate.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum NormalisationSource {
+    /// The regression on the measured covariates.
+    Covariates,
+    /// The variation all parameters share, without covariates.
+    OutputOnly,
+}
+
+/// How an estimate was normalised for its conditions.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct NormalisationDoc {
+    /// The model of the expectations; `null` when there was none (see `unavailable`).
+    pub source: Option<NormalisationSource>,
+    /// The models were still learning (the training period).
+    pub learning: bool,
+    /// Why the conditions are outside what the model learned, when they are: the band is
+    /// the model's extrapolation.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub extrapolated: Option<String>,
+    /// Why the covariates could not be used, when the output-only model stood in.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub note: Option<String>,
+    /// Why no expectation was available for this set (alerts wait).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub unavailable: Option<String>,
+}
+
+/// One parameter against its expectation.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct NormalisedLevel {
+    /// θ a healthy structure is expected to have under these conditions, and the 95 %
+    /// band of a healthy θ there.
+    pub expected: f64,
+    pub expected_lower95: f64,
+    pub expected_upper95: f64,
+    /// This set's standardised residual against the expectation.
+    pub z: f64,
+    /// Filtered loss against the expectation, `1 − θ/expected`, and its 95 % band.
+    pub loss: f64,
+    pub loss_lower95: f64,
+    pub loss_upper95: f64,
 }
 
 /// The drift filter's view of a parameter after this set.

@@ -6,8 +6,11 @@
 //! `f` of its stiffness is `P(true level < (1 − f) b) = Φ(((1 − f) b − x)/s)`. A warning is
 //! raised when that confidence reaches `confidence` at `f = warning_drop` on `persistence`
 //! successive sets; an alarm likewise at `f = alarm_drop` (from normal or warning). The
-//! alert clears (level `cleared`) when the drop has stayed below
-//! `warning_drop − hysteresis` for `persistence` successive sets.
+//! alert clears (level `cleared`) when the confidence that the loss is below
+//! `warning_drop − hysteresis` has reached `confidence` on `persistence` successive sets: a
+//! loss the data still show is never declared healed because one estimate looked better.
+//! With normalisation ([`super::normalise`]) the same rule judges the loss against the
+//! stiffness expected under the set's conditions instead of the fixed baseline.
 //!
 //! **Model inadequate.** A set is inadequate when its ε is above its χ² bound
 //! `ν + 4√(2ν)`, or when the sum of the last `window` ε's is above the bound of a χ² with
@@ -50,7 +53,7 @@ impl Default for AlertThresholds {
     /// the lab frame resolves reliably for its stiffer connections.
     fn default() -> Self {
         Self {
-            warning_drop: 0.15,
+            warning_drop: 0.10,
             alarm_drop: 0.25,
             confidence: 0.95,
             persistence: 3,
@@ -130,6 +133,45 @@ impl Default for LooseningState {
     }
 }
 
+/// What a loosening verdict needs of one connection after a set: the confidences that its
+/// loss is at least the warning and alarm drops, and that it is below the clear level
+/// (`warning_drop − hysteresis`), and the point estimate of the loss.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Judged {
+    pub warning: f64,
+    pub alarm: f64,
+    pub clear: f64,
+    pub drop: f64,
+}
+
+impl Judged {
+    /// Against a fixed baseline `b`: the filtered level `x` with std `s`, a normal belief
+    /// (module docs).
+    pub fn against_baseline(t: &AlertThresholds, baseline: f64, level: f64, std: f64) -> Self {
+        let c = |f| LooseningState::confidence(baseline, level, std, f);
+        Self {
+            warning: c(t.warning_drop),
+            alarm: c(t.alarm_drop),
+            clear: 1.0 - c(t.warning_drop - t.hysteresis),
+            drop: (baseline - level) / baseline,
+        }
+    }
+
+    /// From a belief about the loss: `confidence(f)` = P(loss ≥ f).
+    pub fn from_confidence(
+        t: &AlertThresholds,
+        drop: f64,
+        confidence: impl Fn(f64) -> f64,
+    ) -> Self {
+        Self {
+            warning: confidence(t.warning_drop),
+            alarm: confidence(t.alarm_drop),
+            clear: 1.0 - confidence(t.warning_drop - t.hysteresis),
+            drop,
+        }
+    }
+}
+
 impl LooseningState {
     /// Confidence that the true level is below `(1 − drop) · baseline`.
     pub fn confidence(baseline: f64, level: f64, std: f64, drop: f64) -> f64 {
@@ -143,41 +185,32 @@ impl LooseningState {
         }
     }
 
-    /// Feeds one filtered estimate; returns the transition to report, if any.
-    pub fn step(
-        &mut self,
-        t: &AlertThresholds,
-        baseline: f64,
-        level: f64,
-        std: f64,
-    ) -> Option<Transition> {
-        let c_warn = Self::confidence(baseline, level, std, t.warning_drop);
-        let c_alarm = Self::confidence(baseline, level, std, t.alarm_drop);
-        let drop = (baseline - level) / baseline;
+    /// Feeds one set's verdict; returns the transition to report, if any.
+    pub fn step(&mut self, t: &AlertThresholds, j: Judged) -> Option<Transition> {
         let bump = |run: &mut u32, cond: bool| *run = if cond { *run + 1 } else { 0 };
-        bump(&mut self.warn_run, c_warn >= t.confidence);
-        bump(&mut self.alarm_run, c_alarm >= t.confidence);
-        bump(&mut self.clear_run, drop < t.warning_drop - t.hysteresis);
+        bump(&mut self.warn_run, j.warning >= t.confidence);
+        bump(&mut self.alarm_run, j.alarm >= t.confidence);
+        bump(&mut self.clear_run, j.clear >= t.confidence);
         match self.level {
             Level::Normal | Level::Warning if self.alarm_run >= t.persistence => {
                 self.level = Level::Alarm;
                 Some(Transition {
                     level: AlertLevel::Alarm,
-                    confidence: c_alarm,
+                    confidence: j.alarm,
                 })
             }
             Level::Normal if self.warn_run >= t.persistence => {
                 self.level = Level::Warning;
                 Some(Transition {
                     level: AlertLevel::Warning,
-                    confidence: c_warn,
+                    confidence: j.warning,
                 })
             }
             Level::Warning | Level::Alarm if self.clear_run >= t.persistence => {
                 self.level = Level::Normal;
                 Some(Transition {
                     level: AlertLevel::Cleared,
-                    confidence: 1.0 - c_warn,
+                    confidence: j.clear,
                 })
             }
             _ => None,
@@ -255,7 +288,7 @@ mod tests {
         let mut feed = |level: f64, n: usize, log: &mut Vec<(usize, &'static str)>| {
             for _ in 0..n {
                 let k = log.len();
-                if let Some(tr) = s.step(&t, 1.0, level, 0.01) {
+                if let Some(tr) = s.step(&t, Judged::against_baseline(&t, 1.0, level, 0.01)) {
                     log.push((k, tr.level.as_str()));
                 } else {
                     log.push((k, ""));
@@ -276,12 +309,17 @@ mod tests {
     fn confidence_gates_the_warning() {
         let t = AlertThresholds::default();
         let mut s = LooseningState::default();
-        let tr: Vec<_> = (0..4).filter_map(|_| s.step(&t, 1.0, 0.8, 0.01)).collect();
+        let tr: Vec<_> = (0..4)
+            .filter_map(|_| s.step(&t, Judged::against_baseline(&t, 1.0, 0.8, 0.01)))
+            .collect();
         assert_eq!(tr.len(), 1);
         assert_eq!(tr[0].level, AlertLevel::Warning);
         assert!(tr[0].confidence > 0.99);
         let mut s = LooseningState::default();
-        assert!((0..10).all(|_| s.step(&t, 1.0, 0.8, 0.1).is_none()));
+        assert!((0..10).all(|_| {
+            s.step(&t, Judged::against_baseline(&t, 1.0, 0.8, 0.1))
+                .is_none()
+        }));
     }
 
     /// ν = 8: per-set bound 8 + 4·4 = 24. Window 1 so only the per-set test acts.

@@ -4,6 +4,7 @@ use serde::{Deserialize, Serialize};
 
 use super::alerts::AlertThresholds;
 use super::drift::DriftNoise;
+use super::normalise::NormalisationConfig;
 use crate::core::modal::ModalError;
 use crate::core::updating::{Pairing, UpdateError};
 
@@ -52,6 +53,9 @@ pub struct TrackerConfig {
     /// How measured modes are paired with model modes: `misfit` (the candidate adding least
     /// to ε, continuous through a crossing or a veering) or `mac` (paper (29)).
     pub pairing: PairingRule,
+    /// Judging each connection against the stiffness expected under the set's conditions
+    /// (`[tracker.normalisation]`, [`super::normalise`]).
+    pub normalisation: NormalisationConfig,
 }
 
 /// [`TrackerConfig::weights`].
@@ -97,6 +101,7 @@ impl Default for TrackerConfig {
             bounds: vec![1e-3, 1e3],
             weights: Weights::Auto,
             pairing: PairingRule::Misfit,
+            normalisation: NormalisationConfig::default(),
         }
     }
 }
@@ -112,6 +117,9 @@ impl TrackerConfig {
         };
         if let Err((key, reason)) = self.alerts.validate() {
             return bad(&format!("alerts.{key}"), &reason);
+        }
+        if let Err((key, reason)) = self.normalisation.validate() {
+            return bad(&format!("normalisation.{key}"), &reason);
         }
         let nonneg = |v: f64| v.is_finite() && v >= 0.0;
         if !nonneg(self.drift.level_per_day) {

@@ -15,21 +15,19 @@ pub mod alerts;
 mod config;
 pub mod crosscheck;
 pub mod drift;
+pub mod normalise;
 mod outputs;
+mod set;
 pub mod verdict;
 
 use chrono::{DateTime, Utc};
 use serde::{Deserialize, Serialize};
 
 use crate::contract::modal_set::{ModalSet, Rejection, ValidationContext, parse_modal_set};
-use crate::contract::stiffness::{FilteredLevel, Method, ParameterEstimate};
 use crate::contract::update::WeightsDoc;
-use crate::contract::{
-    Alert, AlertDetail, AlertKind, AlertLevel, Checkpoint, EigenBlock, Estimate, ModeComparison,
-    Output, Rejected, Schema, digest, finite, output_id,
-};
+use crate::contract::{Checkpoint, EigenBlock, Output, Rejected, Schema, digest};
 use crate::core::model::{Model, ParameterKind};
-use crate::core::stats::{Z95, chi2_bound, chi2_dof};
+use crate::core::stats::chi2_bound;
 use crate::core::updating::data::RawMode;
 use crate::core::updating::strategy::rescale_reason;
 use crate::core::updating::variance::MAX_OUTER;
@@ -40,7 +38,6 @@ use crate::core::updating::{
 use alerts::{InadequacyState, LooseningState};
 pub use config::{PairingRule, TrackerConfig, TrackerError, Weights};
 use drift::DriftFilter;
-use outputs::{inadequacy_message, loosening_message};
 
 /// Something the driver must do.
 #[derive(Debug, Clone, PartialEq)]
@@ -128,6 +125,9 @@ pub struct TrackerState {
     /// starts from them); absent while the stated σ explain the data.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub scales: Option<Vec<f64>>,
+    /// The normalisation's models, filters and environment readings.
+    #[serde(default)]
+    pub normalisation: normalise::NormalisationState,
 }
 
 /// How many handled payloads the tracker remembers to recognise a re-delivery (a sensor's
@@ -208,6 +208,7 @@ impl Tracker {
             duplicates: 0,
             seen: Default::default(),
             scales: None,
+            normalisation: Default::default(),
         };
         Self::with_state(model, cfg, state)
     }
@@ -384,266 +385,6 @@ impl Tracker {
             size,
             digest,
         )))
-    }
-
-    fn handle_set(
-        &mut self,
-        set: ModalSet,
-        received: DateTime<Utc>,
-        payload: &[u8],
-    ) -> Vec<Action> {
-        let data = measured_data(&set, &self.model, self.cfg.shape_weight);
-        let fit = match self.fit(&data) {
-            Ok(x) => x,
-            Err(e) => {
-                // The model could not be evaluated for this set (e.g. more modes than the
-                // model resolves): a rejection, state unchanged.
-                let rej = Rejection {
-                    field: "modes".into(),
-                    reason: format!("update failed: {e}"),
-                };
-                return self.reject(received, &rej, payload);
-            }
-        };
-        let SetFit {
-            result: res,
-            epsilon,
-            warm,
-            fallback,
-            weights,
-            scales,
-        } = fit;
-        // Nothing non-finite enters the state, the filters or a checkpoint: a set whose
-        // update gives a non-finite θ, σ or ε (extreme but finite inputs can) is rejected.
-        let std = res.std();
-        let bad = |what: &str, v: &[f64]| {
-            v.iter()
-                .position(|x| !x.is_finite())
-                .map(|l| format!("{what}[{l}] = {}", v[l]))
-        };
-        if let Some(what) = bad("θ", &res.theta)
-            .or_else(|| bad("σ", &std))
-            .or_else(|| bad("ε", &[epsilon]))
-        {
-            let rej = Rejection {
-                field: "modes".into(),
-                reason: format!(
-                    "the update on this set is not finite ({what}); its frequencies, shapes or uncertainties are out of the model's range"
-                ),
-            };
-            return self.reject(received, &rej, payload);
-        }
-        let mut actions = Vec::new();
-        let st = &mut self.state;
-        st.scales = scales;
-        st.accepted += 1;
-        st.last_time = Some(set.time);
-        let origin = *st.origin.get_or_insert(set.time);
-        let days = (set.time - origin).num_milliseconds() as f64 / 86_400_000.0;
-        let converged = res.converged();
-        if !warm {
-            st.cold_starts += 1;
-        }
-        let bound = chi2_bound(data.n_data(), self.model.n_params());
-        if converged {
-            st.theta = Some(res.theta.clone());
-            st.linearized_at = Some(res.last.theta.clone());
-            st.std = Some(std.clone());
-            st.covariance = res.covariance.as_ref().map(|c| {
-                (0..c.nrows())
-                    .map(|i| (0..c.ncols()).map(|j| c[(i, j)]).collect())
-                    .collect()
-            });
-            st.epsilon = Some(epsilon);
-            for (l, f) in st.filters.iter_mut().enumerate() {
-                f.observe(days, res.theta[l], std[l] * std[l]);
-            }
-            if st.baseline.is_none() {
-                // Σσ over the commissioning sets (restarted from this set when a
-                // checkpoint of an older version left it empty).
-                if st.commissioning_std_sum.len() != std.len() {
-                    st.commissioning_std_sum = vec![0.0; std.len()];
-                    st.commissioning_sets = 0;
-                }
-                for (sum, s) in st.commissioning_std_sum.iter_mut().zip(&std) {
-                    *sum += s;
-                }
-                st.commissioning_sets += 1;
-                if st.accepted - st.unconverged >= u64::from(self.cfg.baseline_sets) {
-                    st.baseline = Some(st.filters.iter().map(|f| f.estimate().level).collect());
-                    let n = st.commissioning_sets as f64;
-                    st.baseline_std =
-                        Some(st.commissioning_std_sum.iter().map(|s| s / n).collect());
-                }
-            }
-        } else {
-            st.unconverged += 1;
-        }
-        // Estimate.
-        let baseline = st.baseline.clone();
-        let alerts_off = alerts_off(&self.cfg.alerts, &self.is_connection, st);
-        let parameters = self
-            .model
-            .parameters()
-            .iter()
-            .enumerate()
-            .map(|(l, p)| {
-                let f = st.filters[l].estimate();
-                let b = baseline.as_ref().map(|b| b[l]);
-                ParameterEstimate {
-                    name: p.name.clone(),
-                    theta: res.theta[l],
-                    std: finite(std[l]),
-                    lower95: finite(res.theta[l] - Z95 * std[l]),
-                    upper95: finite(res.theta[l] + Z95 * std[l]),
-                    baseline: b,
-                    change: b.map(|b| (res.theta[l] - b) / b),
-                    stiffness: self.k_nominal[l].map(|k| k * res.theta[l]),
-                    filtered: FilteredLevel {
-                        level: f.level,
-                        trend_per_day: f.trend,
-                        std: f.std,
-                        lower95: f.lower95,
-                        upper95: f.upper95,
-                        change: b.map(|b| (f.level - b) / b),
-                    },
-                    alerts_off: alerts_off[l].clone(),
-                }
-            })
-            .collect();
-        let modes = set
-            .modes
-            .iter()
-            .enumerate()
-            .map(|(m, mode)| ModeComparison::of(&res.last, m, mode.frequency_hz))
-            .collect();
-        actions.push(Action::Publish(Output::Estimate(Box::new(Estimate {
-            schema: Schema::new(),
-            id: output_id(&self.model.name, set.time, "stiffness", 0),
-            structure: self.model.name.clone(),
-            time: set.time,
-            method: Method::ModeMatching,
-            converged,
-            termination: (&res.termination).into(),
-            iterations: res.iterations,
-            warm_start: warm,
-            cold_start_reason: fallback,
-            epsilon,
-            epsilon_bound: bound,
-            temperature_c: set.temperature_c,
-            parameters,
-            modes,
-            weights,
-        }))));
-        // Alerts.
-        let st = &mut self.state;
-        let mut n_alerts = 0;
-        let mut alert = |connection: Option<String>, kind, level, confidence, message, detail| {
-            n_alerts += 1;
-            Action::Publish(Output::Alert(Box::new(Alert {
-                schema: Schema::new(),
-                id: output_id(&self.model.name, set.time, "alert", n_alerts - 1),
-                structure: self.model.name.clone(),
-                time: set.time,
-                connection,
-                kind,
-                level,
-                confidence,
-                message,
-                detail,
-            })))
-        };
-        if let Some(level) = st.inadequacy.step(
-            epsilon,
-            chi2_dof(data.n_data(), self.model.n_params()),
-            self.cfg.alerts.inadequacy_window,
-            self.cfg.alerts.persistence,
-        ) {
-            actions.push(alert(
-                None,
-                AlertKind::ModelInadequate,
-                level,
-                None,
-                inadequacy_message(level, epsilon, bound, &self.cfg.alerts),
-                AlertDetail::Inadequacy {
-                    epsilon,
-                    epsilon_bound: bound,
-                    diagnosis: None,
-                },
-            ));
-            if level == AlertLevel::Warning {
-                actions.push(Action::Diagnose(Box::new(DiagnoseRequest {
-                    set: set.clone(),
-                    epsilon,
-                    epsilon_bound: bound,
-                })));
-            }
-        }
-        if converged && let Some(b) = &st.baseline {
-            for (l, &b_l) in b.iter().enumerate() {
-                if !self.is_connection[l] || alerts_off[l].is_some() {
-                    continue;
-                }
-                let f = st.filters[l].estimate();
-                if let Some(tr) = st.loosening[l].step(&self.cfg.alerts, b_l, f.level, f.std) {
-                    let name = &self.model.parameters()[l].name;
-                    let drop = (b_l - f.level) / b_l;
-                    let inadequate = st.inadequacy.raised;
-                    // The connections it scales, when they are not just its name (a
-                    // space frame's `<member>@<node>.<axis>`).
-                    let scaled: Vec<String> = self
-                        .model
-                        .parameter_elements(l)
-                        .into_iter()
-                        .map(|(_, n)| n)
-                        .collect();
-                    let label = if scaled.len() == 1 && scaled[0] == *name {
-                        name.clone()
-                    } else {
-                        format!("{name} ({})", scaled.join(", "))
-                    };
-                    actions.push(alert(
-                        Some(name.clone()),
-                        AlertKind::Loosening,
-                        tr.level,
-                        Some(tr.confidence),
-                        loosening_message(&label, tr.level, drop, tr.confidence, inadequate),
-                        AlertDetail::Loosening {
-                            theta: f.level,
-                            lower95: f.lower95,
-                            upper95: f.upper95,
-                            baseline: b_l,
-                            drop,
-                            model_inadequate: inadequate,
-                        },
-                    ));
-                }
-            }
-        }
-        // Cross-check schedule (recording time, so replays are deterministic).
-        if converged {
-            let due_sets = self.cfg.crosscheck_every_sets > 0
-                && st
-                    .last_crosscheck
-                    .is_none_or(|(n, _)| st.accepted - n >= self.cfg.crosscheck_every_sets);
-            let due_time = self.cfg.crosscheck_every_s > 0.0
-                && st.last_crosscheck.is_some_and(|(_, t)| {
-                    (set.time - t).num_milliseconds() as f64 / 1000.0 >= self.cfg.crosscheck_every_s
-                });
-            if due_sets || due_time {
-                st.last_crosscheck = Some((st.accepted, set.time));
-                actions.push(Action::Crosscheck(Box::new(CrosscheckRequest {
-                    set,
-                    theta: res.theta.clone(),
-                    std,
-                    iterations: res.iterations,
-                })));
-            }
-        }
-        if st.accepted.is_multiple_of(self.cfg.checkpoint_every_sets) {
-            actions.push(Action::Checkpoint);
-        }
-        actions
     }
 
     /// The fit under the stated σ ([`Self::fit_stated`]), refitted with each mode's shape

@@ -3,21 +3,27 @@
 use super::alerts::AlertThresholds;
 use crate::contract::AlertLevel;
 
-/// The message of a loosening alert of parameter `name`.
+/// The message of a loosening alert of parameter `name`: against the baseline, or with
+/// normalisation against the θ `expected` under the set's conditions (`at -4.3 °C`).
 pub(super) fn loosening_message(
     name: &str,
     level: AlertLevel,
     drop: f64,
     confidence: f64,
     inadequate: bool,
+    against: Option<&(f64, String)>,
 ) -> String {
+    let reference = match against {
+        None => "baseline".to_string(),
+        Some((expected, at)) => format!("the {expected:.3} expected {at}"),
+    };
     let base = match level {
         AlertLevel::Cleared => format!(
-            "{name}: stiffness recovered ({:.0} % below baseline)",
+            "{name}: stiffness recovered ({:.0} % below {reference})",
             100.0 * drop
         ),
         _ => format!(
-            "{name}: stiffness {:.0} % below baseline ({}, confidence {:.3})",
+            "{name}: stiffness {:.0} % below {reference} ({}, confidence {:.3})",
             100.0 * drop,
             level.as_str(),
             confidence

@@ -16,6 +16,7 @@ mod modal_set;
 mod mode_matching;
 mod oma;
 mod replay_cli;
+mod seasons;
 mod sensitivity;
 mod solid;
 mod solid_four_bay;

@@ -91,7 +91,11 @@ impl Regression {
         let mut beta = vec![0.0; q];
         beta[0] = intercept;
         let p = (0..q)
-            .map(|i| (0..q).map(|j| if i == j { prior_std[i].powi(2) } else { 0.0 }).collect())
+            .map(|i| {
+                (0..q)
+                    .map(|j| if i == j { prior_std[i].powi(2) } else { 0.0 })
+                    .collect()
+            })
             .collect();
         Self {
             beta,
@@ -145,12 +149,12 @@ impl Regression {
         let p_phi: Vec<f64> = self.p.iter().map(|row| dot(row, phi)).collect();
         let s = 1.0 / w + dot(phi, &p_phi);
         let e = y - dot(&self.beta, phi);
-        for i in 0..q {
-            self.beta[i] += p_phi[i] / s * e;
+        for (b, k) in self.beta.iter_mut().zip(&p_phi) {
+            *b += k / s * e;
         }
-        for i in 0..q {
-            for j in 0..q {
-                self.p[i][j] -= p_phi[i] * p_phi[j] / s;
+        for (row, ki) in self.p.iter_mut().zip(&p_phi) {
+            for (v, kj) in row.iter_mut().zip(&p_phi) {
+                *v -= ki * kj / s;
             }
         }
         // Keep P symmetric against round-off.
@@ -412,7 +416,7 @@ mod tests {
         }
         let before = m.parameters[0].beta.clone();
         for k in 0..50 {
-            let t = 30.0 * (k as f64 * 0.318).fract();
+            let t = 30.0 * (k as f64 * 0.377).fract();
             assert_eq!(m.learn(&[t], &[-0.003 * t + 0.7f64.ln()], &[r], 5.0), 0);
         }
         assert_eq!(m.parameters[0].beta, before);

@@ -289,7 +289,9 @@ mod tests {
             let p = 12;
             Self {
                 a: (0..p).map(|i| -0.003 - 0.0004 * i as f64).collect(),
-                b: (0..p).map(|i| 0.01 + 0.004 * ((i * 5) % p) as f64).collect(),
+                b: (0..p)
+                    .map(|i| 0.01 + 0.004 * ((i * 5) % p) as f64)
+                    .collect(),
             }
         }
 
@@ -327,7 +329,12 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         year(&mut m, &shared, &mut rng, 1460);
         let fit = m.fit.as_ref().unwrap();
-        assert_eq!(fit.loadings[0].len(), 2, "eigenvalues {:?}", fit.eigenvalues);
+        assert_eq!(
+            fit.loadings[0].len(),
+            2,
+            "eigenvalues {:?}",
+            fit.eigenvalues
+        );
         let noise = Normal::new(0.0, 0.05).unwrap();
         let r = DMatrix::identity(12, 12) * 0.05f64.powi(2);
         let mut inside = 0;
@@ -351,8 +358,7 @@ mod tests {
         y[4] += 0.7f64.ln();
         let pred = m.predict(&y, &(r.clone() * 0.01)).unwrap();
         for (i, (p, y)) in pred.iter().zip(&y).enumerate() {
-            let z = (y - p.mean - if i == 4 { 0.7f64.ln() } else { 0.0 })
-                / p.total_var().sqrt();
+            let z = (y - p.mean - if i == 4 { 0.7f64.ln() } else { 0.0 }) / p.total_var().sqrt();
             assert!(z.abs() < 3.0, "parameter {i}: z = {z}");
         }
         // The same set is held out of learning (one parameter far beyond the gate).

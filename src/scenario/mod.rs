@@ -13,6 +13,10 @@
 //! * `sudden`: a connection parameter drops by `loss` (60 %) at `day` (30).
 //! * `mass`: a point mass (0.8 kg) fixed to a node at `day` (30), absent from the model
 //!   the tracker uses.
+//! * `seasonal`: two years of four sets a day under the climate and thermal law of
+//!   [`seasons`] instead of the background's temperature; with `--loosen`, a sudden loss.
+
+pub mod seasons;
 
 use chrono::{DateTime, Duration, Utc};
 use rand::SeedableRng;
@@ -68,12 +72,14 @@ pub struct Scenario {
     pub seasonal_amp: f64,
     pub alpha_e: f64,
     pub event: Event,
+    /// The seasonal climate and thermal law, instead of the background's temperature.
+    pub seasons: Option<seasons::Seasons>,
 }
 
 /// Failures of scenario set-up or generation.
 #[derive(Debug, thiserror::Error)]
 pub enum ScenarioError {
-    #[error("unknown scenario `{0}` (known: healthy, loosening, sudden, mass)")]
+    #[error("unknown scenario `{0}` (known: healthy, loosening, sudden, mass, seasonal)")]
     Unknown(String),
     #[error("{0}")]
     Invalid(String),
@@ -84,7 +90,7 @@ pub enum ScenarioError {
 }
 
 /// The names [`Scenario::named`] knows.
-pub const NAMES: [&str; 4] = ["healthy", "loosening", "sudden", "mass"];
+pub const NAMES: [&str; 5] = ["healthy", "loosening", "sudden", "mass", "seasonal"];
 
 impl Scenario {
     /// The named scenario (module docs) for `model`: 10,000 sets over 60 days, 9 modes, 1 %
@@ -122,7 +128,7 @@ impl Scenario {
             }
         };
         let event = match name {
-            "healthy" => Event::None,
+            "healthy" | "seasonal" => Event::None,
             "loosening" => Event::Loosening {
                 parameter: find_conn()?,
                 start_day: 40.0,
@@ -177,7 +183,36 @@ impl Scenario {
             seasonal_amp: 15.0,
             alpha_e: STEEL_ALPHA_E,
             event,
-        })
+            seasons: None,
+        }
+        .with_seasons(name == "seasonal", model))
+    }
+
+    /// The seasonal scenario's defaults when `seasonal`: 2,920 sets over 730 days (four a
+    /// day) under [`seasons::Seasons`].
+    fn with_seasons(mut self, seasonal: bool, model: &Model) -> Self {
+        if seasonal {
+            self.sets = 2920;
+            self.days = 730.0;
+            self.reseason(model);
+        }
+        self
+    }
+
+    /// Draws the seasonal law again for the current `days`, `start` and `seed` (after
+    /// changing them).
+    pub fn reseason(&mut self, model: &Model) {
+        let is_connection: Vec<bool> = model
+            .parameters()
+            .iter()
+            .map(|p| matches!(p.kind, ParameterKind::Connections(_)))
+            .collect();
+        self.seasons = Some(seasons::Seasons::new(
+            &is_connection,
+            self.days,
+            self.start,
+            self.seed,
+        ));
     }
 
     /// Time of set `k`, days from the start.
@@ -188,6 +223,9 @@ impl Scenario {
     /// Air temperature at day `t`, °C.
     pub fn temperature(&self, t: f64) -> f64 {
         use std::f64::consts::TAU;
+        if let Some(s) = &self.seasons {
+            return s.temperature(t);
+        }
         self.temperature_mean
             + self.daily_amp * (TAU * t).sin()
             + self.seasonal_amp * (TAU * t / 365.25).sin()
@@ -196,10 +234,14 @@ impl Scenario {
     /// The true θ at day `t` (the model's parameterization).
     pub fn theta_at(&self, model: &Model, t: f64) -> Vec<f64> {
         let mut theta = self.theta.clone();
-        let e_scale = 1.0 + self.alpha_e * (self.temperature(t) - REFERENCE_TEMPERATURE_C);
+        let temperature = self.temperature(t);
+        let e_scale = 1.0 + self.alpha_e * (temperature - REFERENCE_TEMPERATURE_C);
         for (l, p) in model.parameters().iter().enumerate() {
             if matches!(p.kind, ParameterKind::Modulus(_)) {
                 theta[l] *= e_scale;
+            }
+            if let Some(s) = &self.seasons {
+                theta[l] *= s.log_factor(l, temperature).exp();
             }
         }
         match self.event {
@@ -295,7 +337,7 @@ impl Scenario {
                 )),
                 missing: Vec::new(),
                 unexplained_peaks: Vec::new(),
-        covariates: Default::default(),
+                covariates: Default::default(),
             };
             sink(k, set, &theta)?;
         }
