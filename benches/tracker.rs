@@ -1,7 +1,8 @@
 //! The tracker's speed (issue 4): one warm-started update per modal set (the tracking
 //! path: validation, mode matching from the last θ, drift filters, alerts) and whole-replay
 //! throughput (reading the recording, tracking, writing the output MCAP, cross-checks on
-//! their worker thread).
+//! their worker thread). Normalisation for the environment is on (the default), learning on
+//! every timed set; the percentiles are printed without it too.
 //!
 //! Data: the `healthy` scenario of the lab frame (9 modes, 42 channels, 1 % frequency CoV,
 //! 5 % NSD, ±15 °C cycles), 2,000 sets over 12 days (one every 8.6 minutes, the density of
@@ -15,6 +16,7 @@ use boltwatch::contract::Checkpoint;
 use boltwatch::core::model::Model;
 use boltwatch::core::model::spec::ModelSpec;
 use boltwatch::io::replay::{ReplayOptions, replay};
+use boltwatch::pipeline::normalise::Mode;
 use boltwatch::pipeline::{PairingRule, Tracker, TrackerConfig, TrackerState};
 use boltwatch::scenario::Scenario;
 use boltwatch::settings::Settings;
@@ -105,10 +107,21 @@ fn bench_warm_update(c: &mut Criterion) {
         pairing: PairingRule::Mac,
         ..tracking_config()
     };
+    // Normalisation (on by default, learning on every timed set: its costliest state)
+    // beside none.
+    let mut plain = tracking_config();
+    plain.normalisation.mode = Mode::Off;
     let commissioned = warm_percentiles(&model, &sets, tracking_config(), "misfit pairing");
     warm_percentiles(&model, &sets, mac.clone(), "MAC pairing");
+    warm_percentiles(
+        &model,
+        &sets,
+        plain.clone(),
+        "misfit pairing, normalisation off",
+    );
     warm_percentiles(&model, &sets, tracking_config(), "misfit pairing");
     warm_percentiles(&model, &sets, mac, "MAC pairing");
+    warm_percentiles(&model, &sets, plain, "misfit pairing, normalisation off");
     let mut tracker =
         Tracker::restore(model.clone(), tracking_config(), commissioned.clone()).unwrap();
     let mut next = 50;

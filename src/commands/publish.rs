@@ -66,6 +66,7 @@ pub fn run(args: &PublishArgs) -> Result<()> {
         .skip(args.skip)
         .take(args.count.unwrap_or(usize::MAX))
         .collect();
+    let sets = with_readings(&args.recording, sets)?;
     let mut cfg = match &args.zenoh_config {
         Some(f) => {
             zenoh::Config::from_file(f).map_err(zerr(format!("--zenoh-config {}", f.display())))?
@@ -138,11 +139,14 @@ pub fn run(args: &PublishArgs) -> Result<()> {
             publishers.insert(t.clone(), p);
         }
         let start = Instant::now();
-        for (k, m) in sets.iter().enumerate() {
-            if args.rate > 0.0 {
+        let mut k = 0;
+        for m in &sets {
+            let modal = m.topic.ends_with("/modal");
+            if args.rate > 0.0 && modal {
                 let due = start + Duration::from_secs_f64(k as f64 / args.rate);
                 tokio::time::sleep_until(due.into()).await;
             }
+            k += usize::from(modal);
             publishers[&m.topic]
                 .put(m.data.clone())
                 .await
@@ -153,7 +157,7 @@ pub fn run(args: &PublishArgs) -> Result<()> {
         // what the transport has not sent yet. So wait until each structure's daemon reports
         // (status query) the time of its last set as accepted.
         let mut unconfirmed = Vec::new();
-        for t in &topics {
+        for t in topics.iter().filter(|t| t.ends_with("/modal")) {
             let last = sets
                 .iter()
                 .filter(|m| &m.topic == t)
@@ -173,14 +177,42 @@ pub fn run(args: &PublishArgs) -> Result<()> {
         }
         session.close().await.map_err(zerr("cannot close the Zenoh session"))?;
         println!(
-            "published {} modal sets of {} on {} ({secs:.1} s, {:.0} sets/s)",
+            "published {} modal sets ({} inputs) of {} on {} ({secs:.1} s, {:.0} sets/s)",
+            k,
             sets.len(),
             args.recording.display(),
             topics.into_iter().collect::<Vec<_>>().join(", "),
-            sets.len() as f64 / secs.max(1e-9)
+            k as f64 / secs.max(1e-9)
         );
         Ok(())
     })
+}
+
+/// `sets` with the recording's environment readings (`boltwatch/<structure>/environment`)
+/// logged from a day before the first of them to the last, in log-time order: a site's
+/// thermometer published beside its sets.
+fn with_readings(
+    path: &std::path::Path,
+    sets: Vec<crate::io::mcap::RecordedMessage>,
+) -> Result<Vec<crate::io::mcap::RecordedMessage>> {
+    let (Some(first), Some(last)) = (sets.first(), sets.last()) else {
+        return Ok(sets);
+    };
+    let (from, to) = (
+        first.log_time.saturating_sub(86_400_000_000_000),
+        last.log_time,
+    );
+    let mut all: Vec<_> = read_all(path)?
+        .into_iter()
+        .filter(|m| {
+            m.topic.starts_with("boltwatch/")
+                && m.topic.ends_with("/environment")
+                && (from..=to).contains(&m.log_time)
+        })
+        .chain(sets)
+        .collect();
+    all.sort_by_key(|m| m.log_time);
+    Ok(all)
 }
 
 /// The `time` of a modal-set payload, to the millisecond (as status replies give it).

@@ -3,8 +3,11 @@
 //! filtered level with the 95 % band, the baseline, alert markers),
 //! `DIR/<structure>-frequencies.svg` (measured frequencies, their change from the mean
 //! of the first 20 sets, model − measured) and `DIR/<structure>-epsilon.svg` (ε against its χ² bound,
-//! cold starts, model-inadequacy alerts). Time in days from the first estimate. Each figure
-//! also as PNG (`….png`), for mail and documents.
+//! cold starts, model-inadequacy alerts). With normalisation, also
+//! `DIR/<structure>-normalised.svg` (each connection's loss against the stiffness expected
+//! under its conditions, with its band and alerts) and `DIR/<structure>-temperature.svg` (θ
+//! against temperature with the learned law and its band). Time in days from the first
+//! estimate. Each figure also as PNG (`….png`), for mail and documents.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -367,5 +370,151 @@ fn report_structure(structure: &str, o: &Outputs) -> Result<Vec<Figure>> {
         );
     }
     let epsilon = ("epsilon", vec![pe], 1);
-    Ok(vec![stiffness, frequencies, epsilon])
+    let mut figures = vec![stiffness, frequencies, epsilon];
+    figures.extend(seasons_figures(structure, o, &names, &days, &day));
+    Ok(figures)
+}
+
+/// With normalisation: `normalised` (each connection's loss against the stiffness expected
+/// under its conditions over time, with its 95 % band, the thresholds and the alerts) and,
+/// when the sets carry a temperature, `temperature` (θ per set against the temperature,
+/// with the learned law and its band once the models are frozen).
+fn seasons_figures(
+    structure: &str,
+    o: &Outputs,
+    names: &[String],
+    days: &[f64],
+    day: &dyn Fn(&Value) -> f64,
+) -> Vec<Figure> {
+    let normalised = |e: &Value, l: usize| e["parameters"][l].get("normalised").cloned();
+    let with: Vec<usize> = (0..names.len())
+        .filter(|&l| o.stiffness.iter().any(|e| normalised(e, l).is_some()))
+        .collect();
+    if with.is_empty() {
+        return Vec::new();
+    }
+    let mut loss_panels = Vec::new();
+    let mut law_panels = Vec::new();
+    for &l in &with {
+        let name = &names[l];
+        let get = |k: &str| -> Vec<f64> {
+            o.stiffness
+                .iter()
+                .map(|e| normalised(e, l).map_or(f64::NAN, |n| 100.0 * f(&n[k])))
+                .collect()
+        };
+        let mut p = Panel::new(
+            &format!("{structure}: {name}"),
+            "time, days",
+            "loss against expected, %",
+            Scale::Linear,
+            Scale::Linear,
+        );
+        p.bands.push(Band {
+            label: "95 % band".into(),
+            x: days.to_vec(),
+            lower: get("loss_lower95"),
+            upper: get("loss_upper95"),
+        });
+        p.series.push(
+            Series::trace("normalised loss", days.to_vec(), get("loss")).with_color("#1f77b4"),
+        );
+        p.hlines.push((0.0, String::new()));
+        for (level, color) in [
+            ("warning", "#ff7f0e"),
+            ("alarm", "#d62728"),
+            ("cleared", "#2ca02c"),
+        ] {
+            let hits: Vec<&Value> = o
+                .alerts
+                .iter()
+                .filter(|a| a["connection"].as_str() == Some(name) && a["level"] == level)
+                .collect();
+            if !hits.is_empty() {
+                p.series.push(
+                    Series::points(
+                        level,
+                        hits.iter().map(|a| day(a)).collect(),
+                        hits.iter().map(|a| 100.0 * f(&a["drop"])).collect(),
+                    )
+                    .with_color(color),
+                );
+            }
+        }
+        loss_panels.push(p);
+        if let Some(p) = law_panel(structure, name, o, l) {
+            law_panels.push(p);
+        }
+    }
+    let mut out = vec![("normalised", loss_panels, 3)];
+    if !law_panels.is_empty() {
+        out.push(("temperature", law_panels, 3));
+    }
+    out
+}
+
+/// θ per set against temperature, and the expectation of the frozen model (sets judged
+/// after the training period) as a line with its band, sorted by temperature.
+fn law_panel(structure: &str, name: &str, o: &Outputs, l: usize) -> Option<Panel> {
+    let points: Vec<(f64, f64)> = o
+        .stiffness
+        .iter()
+        .filter_map(|e| {
+            Some((
+                e["temperature_c"].as_f64()?,
+                f(&e["parameters"][l]["theta"]),
+            ))
+        })
+        .collect();
+    if points.is_empty() {
+        return None;
+    }
+    let mut frozen: Vec<(f64, f64, f64, f64)> = o
+        .stiffness
+        .iter()
+        .filter(|e| {
+            e["normalisation"]["learning"] == false && e["normalisation"]["source"] == "covariates"
+        })
+        .filter_map(|e| {
+            let n = e["parameters"][l].get("normalised")?;
+            Some((
+                e["temperature_c"].as_f64()?,
+                f(&n["expected"]),
+                f(&n["expected_lower95"]),
+                f(&n["expected_upper95"]),
+            ))
+        })
+        .collect();
+    frozen.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut p = Panel::new(
+        &format!("{structure}: {name}"),
+        "temperature, °C",
+        "θ (relative stiffness)",
+        Scale::Linear,
+        Scale::Linear,
+    );
+    let (t, y): (Vec<f64>, Vec<f64>) = points.into_iter().unzip();
+    p.series.push(
+        Series::points("θ per set", t, y)
+            .with_color("#9a9a9a")
+            .with_width(0.5),
+    );
+    if !frozen.is_empty() {
+        let t: Vec<f64> = frozen.iter().map(|v| v.0).collect();
+        p.bands.push(Band {
+            label: "95 % band of a healthy θ".into(),
+            x: t.clone(),
+            lower: frozen.iter().map(|v| v.2).collect(),
+            upper: frozen.iter().map(|v| v.3).collect(),
+        });
+        p.series.push(
+            Series::trace(
+                "expected (learned law)",
+                t,
+                frozen.iter().map(|v| v.1).collect(),
+            )
+            .with_color("#1f77b4"),
+        );
+    }
+    Some(p)
 }

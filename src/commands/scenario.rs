@@ -58,6 +58,11 @@ pub struct ScenarioArgs {
     /// Seasonal: the day `--loosen` loses it, from the start.
     #[arg(long, requires = "loosen")]
     pub day: Option<f64>,
+    /// The temperature as environment readings (`boltwatch/<structure>/environment`,
+    /// one an hour) instead of in each modal set: a site whose thermometer is not in the
+    /// box that identifies the modes.
+    #[arg(long)]
+    pub environment: bool,
     /// Significant digits kept of the shape entries (smaller files; 0: all).
     #[arg(long, default_value_t = 0)]
     pub shape_digits: u32,
@@ -183,7 +188,10 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
     let channels = [
         ChannelSpec::for_structure(&model.name, first)?,
         ChannelSpec::for_structure(&model.name, "truth")?,
+        ChannelSpec::for_structure(&model.name, "environment")?,
     ];
+    let env_topic = &channels[2].topic;
+    let mut next_reading = 0.0;
     let mut w = McapWriter::create(&args.out, &channels)?;
     let names: Vec<&str> = model.parameters().iter().map(|p| p.name.as_str()).collect();
     let pb = ProgressBar::new(sc.sets as u64).with_style(
@@ -204,8 +212,15 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
                 }
             }
         }
+        if args.environment {
+            set.temperature_c = None;
+        }
         let t = to_ns(set.time);
         let result = t.and_then(|t| {
+            if args.environment {
+                next_reading =
+                    write_readings(&mut w, env_topic, &sc, &model.name, next_reading, sc.day(k))?;
+            }
             match args.raw.accel {
                 None => w.write(modal_topic, t, &serde_json::to_vec(&set.to_json())?)?,
                 Some(burst) => {
@@ -271,6 +286,38 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
         args.out.display()
     );
     Ok(())
+}
+
+/// The environment readings due from day `from` up to day `to`, one an hour on the hour;
+/// returns the day of the next one.
+fn write_readings(
+    w: &mut McapWriter,
+    topic: &str,
+    sc: &Scenario,
+    structure: &str,
+    from: f64,
+    to: f64,
+) -> Result<f64> {
+    let hour = 1.0 / 24.0;
+    let mut day = from;
+    while day <= to + 1e-9 {
+        let time = sc.start + chrono::Duration::milliseconds((day * 86_400_000.0).round() as i64);
+        let reading = crate::contract::environment::EnvironmentReading {
+            structure: structure.to_string(),
+            time,
+            conditions: crate::contract::environment::Conditions {
+                temperature_c: Some((sc.temperature(day) * 100.0).round() / 100.0),
+                covariates: Default::default(),
+            },
+        };
+        w.write(
+            topic,
+            to_ns(time)?,
+            &serde_json::to_vec(&reading.to_json())?,
+        )?;
+        day += hour;
+    }
+    Ok(day)
 }
 
 /// The scenario's size, seed and modes from the options, and the seasonal loss: per set

@@ -133,7 +133,8 @@ pub struct NormalisationDoc {
     /// Why the covariates could not be used, when the output-only model stood in.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub note: Option<String>,
-    /// Why no expectation was available for this set (alerts wait).
+    /// Why no expectation was available for this set (its connections are judged against
+    /// the baseline).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub unavailable: Option<String>,
 }

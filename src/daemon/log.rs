@@ -62,7 +62,10 @@ impl RollingLog {
     ) -> Result<Self> {
         std::fs::create_dir_all(dir)
             .with_context(|| format!("cannot create log directory {}", dir.display()))?;
-        let mut channels = vec![ChannelSpec::for_structure(structure, "modal")?];
+        let mut channels = vec![
+            ChannelSpec::for_structure(structure, "modal")?,
+            ChannelSpec::for_structure(structure, "environment")?,
+        ];
         for suffix in Output::TOPICS {
             channels.push(ChannelSpec::for_structure(structure, suffix)?);
         }
@@ -133,10 +136,11 @@ impl RollingLog {
         self.write_message(topic, log_time, data).map(|_| ())
     }
 
-    /// Writes one received modal set (log time: its reception); returns its position.
-    /// Durable once [`RollingLog::sync`] returns.
-    pub fn write_input(&mut self, log_time: u64, data: &[u8]) -> Result<WalPosition> {
-        let key = topic(&self.structure, "modal");
+    /// Writes one received input, a modal set or an environment reading (its topic suffix
+    /// [`INPUTS`]; log time: its reception); returns its position. Durable once
+    /// [`RollingLog::sync`] returns.
+    pub fn write_input(&mut self, suffix: &str, log_time: u64, data: &[u8]) -> Result<WalPosition> {
+        let key = topic(&self.structure, suffix);
         self.write_message(&key, log_time, data)
     }
 
@@ -144,7 +148,7 @@ impl RollingLog {
         if self.current.is_none() {
             self.start()?;
         }
-        let modal = topic.ends_with("/modal");
+        let modal = is_input(topic);
         let f = self.current.as_mut().expect("a log file is open");
         f.w.write(topic, log_time, data)?;
         let at = WalPosition {
@@ -217,7 +221,6 @@ impl RollingLog {
                 from.file
             );
         }
-        let key = topic(&self.structure, "modal");
         let mut out = Vec::new();
         for (order, name) in files {
             let skip = if order == start { from.modal } else { 0 };
@@ -225,7 +228,7 @@ impl RollingLog {
             let inputs = read_all(&path)
                 .with_context(|| format!("write-ahead log {}", path.display()))?
                 .into_iter()
-                .filter(|m| m.topic == key)
+                .filter(|m| is_input(&m.topic))
                 .skip(usize::try_from(skip).unwrap_or(usize::MAX));
             out.extend(inputs);
         }
@@ -305,6 +308,17 @@ pub fn file_order(structure: &str, name: &str) -> Option<(String, u64)> {
     };
     chrono::NaiveDateTime::parse_from_str(stamp, "%Y%m%dT%H%M%S%.3fZ").ok()?;
     Some((stamp.to_string(), k))
+}
+
+/// The topic suffixes of the inputs a log holds ahead of their handling: modal sets and
+/// environment readings. A [`WalPosition`] counts both (its `modal` field is the number of
+/// inputs before it in its file).
+pub const INPUTS: [&str; 2] = ["modal", "environment"];
+
+fn is_input(topic: &str) -> bool {
+    INPUTS
+        .iter()
+        .any(|s| topic.strip_suffix(s).is_some_and(|t| t.ends_with('/')))
 }
 
 #[cfg(test)]

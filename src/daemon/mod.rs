@@ -219,6 +219,23 @@ pub async fn run(settings: Settings) -> Result<()> {
                 topic(&s.name, "accel")
             )))?;
         subscribers.push(accel_sub);
+        // Environment readings, for sites whose thermometer is not in the OMA box: into the
+        // same queue (and the write-ahead log), so they are joined in arrival order.
+        let env_tx = tx.clone();
+        let env_shared = shared.clone();
+        let env_sub = session
+            .declare_subscriber(topic(&s.name, "environment"))
+            .history(HistoryConfig::default().detect_late_publishers())
+            .recovery(RecoveryConfig::default().heartbeat())
+            .callback(move |sample| {
+                worker::enqueue_environment(&env_tx, &env_shared, sample.payload())
+            })
+            .await
+            .map_err(zerr(format!(
+                "cannot subscribe to {}",
+                topic(&s.name, "environment")
+            )))?;
+        subscribers.push(env_sub);
         let q_shared = shared.clone();
         queryables.push(
             session

@@ -57,6 +57,11 @@ pub enum Input {
         received: DateTime<Utc>,
         payload: Vec<u8>,
     },
+    /// An environment reading (`boltwatch.environment.v1`).
+    Environment {
+        received: DateTime<Utc>,
+        payload: Vec<u8>,
+    },
     /// Finish: every set queued before this one is processed first.
     Shutdown,
 }
@@ -189,7 +194,14 @@ impl Worker {
             let inputs = self.out.log.inputs_after(&pos)?;
             let n = inputs.len() as u64;
             for m in inputs {
-                self.handle(from_ns(m.log_time), &m.data)?;
+                if m.topic.ends_with("/environment") {
+                    let actions = self
+                        .tracker
+                        .handle_environment(from_ns(m.log_time), &m.data);
+                    self.publish_guarded(from_ns(m.log_time), &m.data, actions)?;
+                } else {
+                    self.handle(from_ns(m.log_time), &m.data)?;
+                }
                 self.out.shared.beat();
             }
             self.out.shared.with_status(|st| st.replayed += n);
@@ -270,7 +282,11 @@ impl Worker {
                     shared
                         .queued_bytes
                         .fetch_sub(payload.len() as u64, Ordering::Relaxed);
-                    Some(self.out.log.write_input(to_ns(*received)?, payload)?)
+                    Some(
+                        self.out
+                            .log
+                            .write_input("modal", to_ns(*received)?, payload)?,
+                    )
                 }
                 Input::Oversize { .. } => {
                     shared.depth.fetch_sub(1, Ordering::Relaxed);
@@ -284,6 +300,17 @@ impl Worker {
                         .queued_bytes
                         .fetch_sub(payload.len() as u64, Ordering::Relaxed);
                     None
+                }
+                Input::Environment { received, payload } => {
+                    shared.depth.fetch_sub(1, Ordering::Relaxed);
+                    shared
+                        .queued_bytes
+                        .fetch_sub(payload.len() as u64, Ordering::Relaxed);
+                    Some(
+                        self.out
+                            .log
+                            .write_input("environment", to_ns(*received)?, payload)?,
+                    )
                 }
                 Input::Shutdown => None,
             };
@@ -328,6 +355,17 @@ impl Worker {
                     self.publish_guarded(received, &head, vec![Action::Publish(o)])?;
                 }
                 Input::Accel { received, payload } => self.handle_accel(received, &payload)?,
+                Input::Environment { received, payload } => {
+                    let actions = self.tracker.handle_environment(received, &payload);
+                    self.dirty = true;
+                    self.publish_guarded(received, &payload, actions)?;
+                    if let Some(p) = pos {
+                        self.handled_upto = Some(WalPosition {
+                            file: p.file,
+                            modal: p.modal + 1,
+                        });
+                    }
+                }
                 Input::Shutdown => {}
             }
             shared.beat();
@@ -366,7 +404,10 @@ impl Worker {
         match e {
             FrontEvent::Set(set) => {
                 let bytes = serde_json::to_vec(&set.to_json())?;
-                let pos = self.out.log.write_input(to_ns(received)?, &bytes)?;
+                let pos = self
+                    .out
+                    .log
+                    .write_input("modal", to_ns(received)?, &bytes)?;
                 self.out.log.sync()?;
                 emit(&mut self.out, Output::Modal(set))?;
                 self.handle(received, &bytes)?;
@@ -573,12 +614,25 @@ pub const QUEUE_WAIT: Duration = Duration::from_secs(60);
 /// start and digest only; a set that does not fit the queue (by count or by bytes) is
 /// dropped and counted, or waited for (`when_full`).
 pub fn enqueue(tx: &SyncSender<Input>, shared: &Shared, payload: &ZBytes, when_full: WhenFull) {
-    enqueue_as(tx, shared, payload, when_full, false);
+    enqueue_as(tx, shared, payload, when_full, Kind::Set);
 }
 
 /// [`enqueue`] for a raw block (`boltwatch/<s>/accel`), handed to the accel front.
 pub fn enqueue_accel(tx: &SyncSender<Input>, shared: &Shared, payload: &ZBytes) {
-    enqueue_as(tx, shared, payload, WhenFull::Drop, true);
+    enqueue_as(tx, shared, payload, WhenFull::Drop, Kind::Accel);
+}
+
+/// [`enqueue`] for an environment reading (`boltwatch/<s>/environment`).
+pub fn enqueue_environment(tx: &SyncSender<Input>, shared: &Shared, payload: &ZBytes) {
+    enqueue_as(tx, shared, payload, WhenFull::Wait, Kind::Environment);
+}
+
+/// What a queued payload is.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Kind {
+    Set,
+    Accel,
+    Environment,
 }
 
 fn enqueue_as(
@@ -586,7 +640,7 @@ fn enqueue_as(
     shared: &Shared,
     payload: &ZBytes,
     when_full: WhenFull,
-    accel: bool,
+    kind: Kind,
 ) {
     shared.received.fetch_add(1, Ordering::Relaxed);
     let received = Utc::now();
@@ -616,15 +670,17 @@ fn enqueue_as(
             .queued_bytes
             .fetch_add(size as u64, Ordering::Relaxed);
         let payload = payload.to_bytes().into_owned();
-        if accel {
-            Input::Accel { received, payload }
-        } else {
-            Input::Set { received, payload }
+        match kind {
+            Kind::Accel => Input::Accel { received, payload },
+            Kind::Environment => Input::Environment { received, payload },
+            Kind::Set => Input::Set { received, payload },
         }
     };
     shared.depth.fetch_add(1, Ordering::Relaxed);
     let bytes = match &input {
-        Input::Set { payload, .. } | Input::Accel { payload, .. } => payload.len() as u64,
+        Input::Set { payload, .. }
+        | Input::Accel { payload, .. }
+        | Input::Environment { payload, .. } => payload.len() as u64,
         _ => 0,
     };
     let sent = match when_full {

@@ -292,6 +292,8 @@ fn fingerprint(settings: &Settings) -> Value {
 pub enum Input {
     /// A modal set as recorded.
     Recorded(RecordedMessage),
+    /// An environment reading as recorded (`boltwatch/<structure>/environment`).
+    Environment(RecordedMessage),
     /// A modal set identified from a window of accel blocks ([`AccelFront`]).
     Identified(Box<ModalSet>),
     /// An accel block rejected, or a window left unfinished: at `log_time`, with the
@@ -308,11 +310,19 @@ pub enum Input {
 impl Input {
     fn log_time(&self) -> Result<u64> {
         match self {
-            Self::Recorded(m) => Ok(m.log_time),
+            Self::Recorded(m) | Self::Environment(m) => Ok(m.log_time),
             Self::Identified(s) => to_ns(s.time),
             Self::Refused { log_time, .. } => Ok(*log_time),
         }
     }
+}
+
+/// The input topics of a structure.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Source {
+    Modal,
+    Accel,
+    Environment,
 }
 
 /// Inputs of each structure, in log-time order (a window's modal set at the time of its
@@ -328,10 +338,14 @@ pub fn read_inputs(
     models: &HashMap<String, crate::io::driver::StructureModel>,
     identify: &IdentifySettings,
 ) -> Result<Inputs> {
-    let mut wanted: HashMap<String, (&str, bool)> = HashMap::new();
+    let mut wanted: HashMap<String, (&str, Source)> = HashMap::new();
     for name in models.keys() {
-        wanted.insert(topic(name, "modal"), (name.as_str(), false));
-        wanted.insert(topic(name, "accel"), (name.as_str(), true));
+        wanted.insert(topic(name, "modal"), (name.as_str(), Source::Modal));
+        wanted.insert(topic(name, "accel"), (name.as_str(), Source::Accel));
+        wanted.insert(
+            topic(name, "environment"),
+            (name.as_str(), Source::Environment),
+        );
     }
     let mut fronts: BTreeMap<&str, (AccelFront, u64)> = BTreeMap::new();
     let mut inputs = Vec::new();
@@ -364,8 +378,9 @@ pub fn read_inputs(
     };
     for_each_message(path, |m| {
         match wanted.get(&m.topic) {
-            Some(&(s, false)) => inputs.push((s.to_string(), Input::Recorded(m))),
-            Some(&(s, true)) => {
+            Some(&(s, Source::Modal)) => inputs.push((s.to_string(), Input::Recorded(m))),
+            Some(&(s, Source::Environment)) => inputs.push((s.to_string(), Input::Environment(m))),
+            Some(&(s, Source::Accel)) => {
                 blocks += 1;
                 let (front, last) = fronts.entry(s).or_insert_with(|| {
                     (
@@ -450,7 +465,9 @@ pub fn replay(
         opts.out.display()
     );
     // The identified modal sets go out on `modal` when the recording has raw data.
-    let raw = sets.iter().any(|(_, i)| !matches!(i, Input::Recorded(_)));
+    let raw = sets
+        .iter()
+        .any(|(_, i)| !matches!(i, Input::Recorded(_) | Input::Environment(_)));
     let mut channels = Vec::new();
     for s in &settings.structures {
         for suffix in Output::TOPICS {
@@ -627,6 +644,7 @@ pub fn replay(
             .expect("a tracker per watched structure");
         let actions = match input {
             Input::Recorded(msg) => tracker.handle(from_ns(msg.log_time), &msg.data),
+            Input::Environment(msg) => tracker.handle_environment(from_ns(msg.log_time), &msg.data),
             Input::Identified(set) => {
                 let bytes = serde_json::to_vec(&set.to_json())?;
                 let mut a = vec![Action::Publish(Output::Modal(set.clone()))];

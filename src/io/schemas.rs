@@ -9,7 +9,7 @@ pub const TRUTH_SCHEMA: &str = "boltwatch.truth.v1";
 
 /// `(topic suffix, schema name, JSON Schema text)` of every channel, in the order channels
 /// are declared in an output file.
-pub const CHANNELS: [(&str, &str, &str); 7] = [
+pub const CHANNELS: [(&str, &str, &str); 8] = [
     (
         "modal",
         crate::contract::modal_set::MODAL_SET_SCHEMA,
@@ -36,6 +36,11 @@ pub const CHANNELS: [(&str, &str, &str); 7] = [
         "accel",
         crate::contract::accel::Accel::SCHEMA,
         include_str!("schemas/accel.json"),
+    ),
+    (
+        "environment",
+        crate::contract::environment::ENVIRONMENT_SCHEMA,
+        include_str!("schemas/environment.json"),
     ),
 ];
 

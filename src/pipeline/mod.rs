@@ -128,6 +128,9 @@ pub struct TrackerState {
     /// The normalisation's models, filters and environment readings.
     #[serde(default)]
     pub normalisation: normalise::NormalisationState,
+    /// Environment readings kept (rejected ones count in `rejected`).
+    #[serde(default)]
+    pub environment_readings: u64,
 }
 
 /// How many handled payloads the tracker remembers to recognise a re-delivery (a sensor's
@@ -209,6 +212,7 @@ impl Tracker {
             seen: Default::default(),
             scales: None,
             normalisation: Default::default(),
+            environment_readings: 0,
         };
         Self::with_state(model, cfg, state)
     }
@@ -349,6 +353,27 @@ impl Tracker {
                 payload.len(),
                 digest,
             ))],
+        }
+    }
+
+    /// Handles one environment reading (`boltwatch.environment.v1`) received at
+    /// `received`: kept for joining to the sets near it in time ([`normalise`]), or
+    /// rejected (published, counted) with the field and the reason. No output when kept.
+    pub fn handle_environment(&mut self, received: DateTime<Utc>, payload: &[u8]) -> Vec<Action> {
+        let structures = [self.model.name.as_str()];
+        match crate::contract::environment::parse_environment(payload, &structures) {
+            Ok(r) => {
+                self.state.environment_readings += 1;
+                self.state.normalisation.add_reading(r.time, r.conditions);
+                Vec::new()
+            }
+            Err(rej) => {
+                let rej = Rejection {
+                    field: rej.field,
+                    reason: format!("environment reading: {}", rej.reason),
+                };
+                self.reject(received, &rej, payload)
+            }
         }
     }
 

@@ -221,7 +221,15 @@ pub struct SetEstimate<'a> {
 
 impl NormalisationState {
     /// Keeps an environment reading for the sets it may complete.
+    /// A reading already kept (a re-delivery) is not kept twice.
     pub fn add_reading(&mut self, time: DateTime<Utc>, conditions: Conditions) {
+        if self
+            .environment
+            .iter()
+            .any(|(t, c)| *t == time && *c == conditions)
+        {
+            return;
+        }
         let at = self.environment.partition_point(|(t, _)| *t <= time);
         self.environment.insert(at, (time, conditions));
         while self.environment.len() > ENVIRONMENT_KEPT {

@@ -311,9 +311,9 @@ impl Tracker {
         }
     }
 
-    /// The loosening alerts of every connection with alerts on: against the baseline, or
-    /// with normalisation against the expectation under the set's conditions (none while
-    /// there is no expectation).
+    /// The loosening alerts of every connection with alerts on: with normalisation against
+    /// the expectation under the set's conditions, else (off, or no expectation yet)
+    /// against the baseline.
     fn loosening_alerts(
         &mut self,
         sink: &mut AlertSink,
@@ -325,11 +325,11 @@ impl Tracker {
         let Some(baseline) = self.state.baseline.clone() else {
             return;
         };
+        // Without an expectation (normalisation off, or not yet learned enough), against
+        // the baseline.
         let normalised = match judgement {
-            Some(Err(_)) => return,
             Some(Ok(j)) => Some(j),
-            None if self.cfg.normalisation.mode != Mode::Off => return,
-            None => None,
+            _ => None,
         };
         for (l, &b_l) in baseline.iter().enumerate() {
             if !self.is_connection[l] || alerts_off[l].is_some() {

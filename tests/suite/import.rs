@@ -266,6 +266,7 @@ fn replay_bytes(name: &str, structure: &str, sets: usize, modes: usize, crossche
         loosen: None,
         drop: None,
         day: None,
+        environment: false,
         shape_digits: 0,
         out: rec.clone(),
         raw: Default::default(),

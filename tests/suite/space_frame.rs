@@ -614,6 +614,7 @@ fn a_loosening_space_frame_connection_raises_its_alarm_alone() {
         loosen: None,
         drop: None,
         day: None,
+        environment: false,
         shape_digits: 0,
         out: rec.clone(),
         raw: Default::default(),

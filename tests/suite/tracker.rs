@@ -39,6 +39,7 @@ pub fn make_scenario(name: &str, sets: usize, days: f64, out: &Path) {
         loosen: None,
         drop: None,
         day: None,
+        environment: false,
         shape_digits: 0,
         out: out.to_path_buf(),
         raw: Default::default(),
