@@ -3,8 +3,8 @@
 use std::process::ExitCode;
 
 use boltwatch::commands::{
-    diagnose, export, identify, modes, publish, replay, report, run, scenario, simulate, sweep,
-    update,
+    diagnose, export, identify, modes, normalisation, publish, replay, report, run, scenario,
+    simulate, sweep, update,
 };
 use clap::{Parser, Subcommand};
 
@@ -31,7 +31,8 @@ enum Command {
     SweepSigma(sweep::SweepArgs),
     /// Find where the model and a modal set disagree, name the missing effect, add it.
     Diagnose(diagnose::DiagnoseArgs),
-    /// Write a synthetic monitoring recording (MCAP): healthy, loosening, sudden or mass.
+    /// Write a synthetic monitoring recording (MCAP): healthy, loosening, sudden, mass or
+    /// seasonal.
     Scenario(scenario::ScenarioArgs),
     /// Run the tracker over a recording (MCAP) as fast as possible; outputs into an MCAP file.
     Replay(replay::ReplayArgs),
@@ -46,6 +47,10 @@ enum Command {
     ExportMatrices(export::ExportArgs),
     /// Identify modal sets, with uncertainties, from a raw vibration record (SSI-COV).
     Identify(identify::IdentifyArgs),
+    /// What a tracker learned of its structure's seasons (show), or learn it again from a
+    /// recording between two times (learn).
+    #[command(subcommand)]
+    Normalisation(normalisation::NormalisationCommand),
 }
 
 fn main() -> ExitCode {
@@ -65,6 +70,7 @@ fn main() -> ExitCode {
         Command::Publish(a) => publish::run(a),
         Command::ExportMatrices(a) => export::run(a),
         Command::Identify(a) => identify::run(a),
+        Command::Normalisation(a) => normalisation::run(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

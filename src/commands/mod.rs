@@ -7,6 +7,7 @@ pub mod identify;
 pub mod identify_plot;
 pub mod inputs;
 pub mod modes;
+pub mod normalisation;
 pub mod progress;
 pub mod publish;
 pub mod replay;

@@ -104,6 +104,7 @@ pub async fn run(settings: Settings) -> Result<()> {
             }
             None => Tracker::new(model, settings.tracker.clone())?,
         };
+        crate::io::model::adopt_law(&mut tracker)?;
         tracker.set_max_future(Some(chrono::TimeDelta::milliseconds(
             (d.max_future_s * 1e3).round() as i64,
         )));

@@ -79,3 +79,39 @@ pub fn load_structure(s: &StructureSettings) -> Result<(Option<ModelSpec>, Model
     }
     Ok((spec, model))
 }
+
+/// Makes `tracker` judge by the law file of `tracker.normalisation.law`, when one is
+/// configured: it must be for the tracker's structure and parameters.
+pub fn adopt_law(tracker: &mut crate::pipeline::Tracker) -> Result<()> {
+    let path = tracker.config().normalisation.law.clone();
+    if path.is_empty() {
+        return Ok(());
+    }
+    let text = std::fs::read_to_string(&path).with_context(|| {
+        format!("configuration key tracker.normalisation.law: cannot read {path}")
+    })?;
+    let law: crate::commands::normalisation::Law = serde_json::from_str(&text)
+        .with_context(|| format!("tracker.normalisation.law: {path} is not a law file"))?;
+    let model = tracker.model();
+    let name = model.name.clone();
+    let names: Vec<&str> = model.parameters().iter().map(|p| p.name.as_str()).collect();
+    if law.structure != name || law.parameters != names {
+        bail!(
+            "tracker.normalisation.law: {path} was learned for {} ({} parameters), not {} ({} parameters)",
+            law.structure,
+            law.parameters.len(),
+            name,
+            names.len()
+        );
+    }
+    if tracker.adopt_normalisation(&law.state) {
+        tracing::info!(
+            structure = name,
+            "judging by the normalisation law {path}, learned from {} sets between {} and {}",
+            law.sets,
+            crate::contract::rfc3339(law.from),
+            crate::contract::rfc3339(law.to)
+        );
+    }
+    Ok(())
+}

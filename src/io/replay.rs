@@ -537,8 +537,9 @@ pub fn replay(
                 let state = states
                     .remove(name)
                     .ok_or_else(|| anyhow!(ctx(&format!("no tracker of {name}"))))?;
-                let t = Tracker::restore(model.1.clone(), tracker_cfg.clone(), state)
+                let mut t = Tracker::restore(model.1.clone(), tracker_cfg.clone(), state)
                     .with_context(|| ctx(&format!("tracker of {name}")))?;
+                crate::io::model::adopt_law(&mut t)?;
                 trackers.insert(name.clone(), t);
             }
             if !part.exists() {
@@ -588,10 +589,9 @@ pub fn replay(
                 );
             }
             for (name, model) in &models {
-                trackers.insert(
-                    name.clone(),
-                    Tracker::new(model.1.clone(), tracker_cfg.clone())?,
-                );
+                let mut t = Tracker::new(model.1.clone(), tracker_cfg.clone())?;
+                crate::io::model::adopt_law(&mut t)?;
+                trackers.insert(name.clone(), t);
             }
             (0, McapWriter::create(&part, &channels)?, Vec::new())
         }

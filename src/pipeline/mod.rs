@@ -356,6 +356,12 @@ impl Tracker {
         }
     }
 
+    /// Judges by the normalisation models of a law file from now on
+    /// ([`normalise::NormalisationState::adopt`]); whether anything changed.
+    pub fn adopt_normalisation(&mut self, law: &normalise::NormalisationState) -> bool {
+        self.state.normalisation.adopt(law)
+    }
+
     /// Handles one environment reading (`boltwatch.environment.v1`) received at
     /// `received`: kept for joining to the sets near it in time ([`normalise`]), or
     /// rejected (published, counted) with the field and the reason. No output when kept.

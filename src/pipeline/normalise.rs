@@ -68,6 +68,9 @@ pub struct NormalisationConfig {
     pub extrapolation_margin: f64,
     /// An environment reading completes a set at most this far from it in time, s.
     pub max_age_s: f64,
+    /// A law file (`boltwatch normalisation learn`): when set, the tracker judges by the
+    /// models in it, frozen, instead of what it learned itself ("": none).
+    pub law: String,
 }
 
 impl Default for NormalisationConfig {
@@ -82,6 +85,7 @@ impl Default for NormalisationConfig {
             factors: 0,
             extrapolation_margin: 0.1,
             max_age_s: 3600.0,
+            law: String::new(),
         }
     }
 }
@@ -255,6 +259,24 @@ impl NormalisationState {
             }
         }
         out
+    }
+
+    /// Takes the models of a law (learned elsewhere, frozen) in place of its own; the
+    /// normalised filters start again. Returns whether anything changed (a tracker restored
+    /// with the law it already has keeps its filters).
+    pub fn adopt(&mut self, law: &NormalisationState) -> bool {
+        if self.covariates == law.covariates
+            && self.factors == law.factors
+            && self.frozen_at == law.frozen_at
+        {
+            return false;
+        }
+        self.start = law.start;
+        self.frozen_at = law.frozen_at;
+        self.covariates = law.covariates.clone();
+        self.factors = law.factors.clone();
+        self.filters.clear();
+        true
     }
 
     /// Judges one converged set and learns from it while training (module docs). `Err`

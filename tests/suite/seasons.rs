@@ -452,3 +452,100 @@ fn normalisation_resumes_from_a_checkpoint() {
         assert!(estimates(&x)[0].parameters[0].normalised.is_some());
     }
 }
+
+fn boltwatch_cli(args: &[&str], env: &[(&str, &str)]) -> std::process::Output {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_boltwatch"))
+        .args(args)
+        .envs(env.iter().copied())
+        .env("BOLTWATCH__LOG__LEVEL", "warn")
+        .output()
+        .expect("binary runs");
+    assert!(
+        out.status.success(),
+        "boltwatch {}: {}",
+        args.join(" "),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+/// `normalisation learn` learns the models from the sets between two times and writes them
+/// frozen; `show` prints them; a replay configured with the law judges by it from the first
+/// set (not learning), while the same replay without it is still learning; a law for
+/// another parameterization is refused at start, naming the key.
+#[test]
+fn a_law_learned_from_chosen_dates_is_shown_and_judged_by() {
+    let d = super::tracker::tmp_dir("law");
+    let rec = d.join("seasonal.mcap");
+    let rec_s = rec.to_str().unwrap();
+    boltwatch_cli(
+        &[
+            "scenario", "seasonal", "--days", "40", "--sets", "200", "-o", rec_s,
+        ],
+        &[],
+    );
+    let law = d.join("law.json");
+    let out = boltwatch_cli(
+        &[
+            "normalisation",
+            "learn",
+            rec_s,
+            "--from",
+            "2026-03-01T00:00:00Z",
+            "--to",
+            "2026-03-31T00:00:00Z",
+            "-o",
+            law.to_str().unwrap(),
+        ],
+        &[],
+    );
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("covariate law"), "{text}");
+    assert!(text.contains("learned from 151 sets"), "{text}");
+    let shown = boltwatch_cli(&["normalisation", "show", law.to_str().unwrap()], &[]);
+    let shown = String::from_utf8_lossy(&shown.stdout);
+    assert!(
+        shown.contains("C1L@J1L") && shown.contains("frozen at 2026-03-31"),
+        "{shown}"
+    );
+    let learning = |env: &[(&str, &str)], name: &str| -> Vec<bool> {
+        let out = d.join(name);
+        boltwatch_cli(&["replay", rec_s, "-o", out.to_str().unwrap()], env);
+        boltwatch::io::mcap::read_all(&out)
+            .unwrap()
+            .into_iter()
+            .filter(|m| m.topic.ends_with("/stiffness"))
+            .map(|m| {
+                let v: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
+                v["normalisation"]["learning"].as_bool().unwrap()
+            })
+            .collect()
+    };
+    let own = learning(&[], "own.mcap");
+    assert!(
+        own.iter().all(|&l| l),
+        "a fresh tracker learns through its first year"
+    );
+    let law_s = law.to_str().unwrap();
+    let judged = learning(
+        &[("BOLTWATCH__TRACKER__NORMALISATION__LAW", law_s)],
+        "law.mcap",
+    );
+    assert!(judged.iter().all(|&l| !l), "judged by the frozen law");
+    // A law of another parameterization: refused at start.
+    let mut v: serde_json::Value = serde_json::from_slice(&std::fs::read(&law).unwrap()).unwrap();
+    v["parameters"].as_array_mut().unwrap().pop();
+    let bad = d.join("bad-law.json");
+    std::fs::write(&bad, v.to_string()).unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_boltwatch"))
+        .args(["replay", rec_s, "-o", d.join("bad.mcap").to_str().unwrap()])
+        .env(
+            "BOLTWATCH__TRACKER__NORMALISATION__LAW",
+            bad.to_str().unwrap(),
+        )
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("tracker.normalisation.law"), "{err}");
+}
