@@ -397,16 +397,22 @@ fn seasons_figures(
     let mut law_panels = Vec::new();
     for &l in &with {
         let name = &names[l];
+        // In %, within the plotted range: the first sets' bands, while the law is mostly
+        // its prior, reach far into "stiffer than expected".
         let get = |k: &str| -> Vec<f64> {
             o.stiffness
                 .iter()
-                .map(|e| normalised(e, l).map_or(f64::NAN, |n| 100.0 * f(&n[k])))
+                .map(|e| {
+                    normalised(e, l).map_or(f64::NAN, |n| {
+                        (100.0 * f(&n[k])).clamp(LOSS_SHOWN[0], LOSS_SHOWN[1])
+                    })
+                })
                 .collect()
         };
         let mut p = Panel::new(
             &format!("{structure}: {name}"),
             "time, days",
-            "loss against expected, %",
+            "loss against expected, % (clipped to -50 … 100)",
             Scale::Linear,
             Scale::Linear,
         );
@@ -452,6 +458,9 @@ fn seasons_figures(
     }
     out
 }
+
+/// The range of normalised loss drawn, %.
+const LOSS_SHOWN: [f64; 2] = [-50.0, 100.0];
 
 /// θ per set against temperature, and the expectation of the frozen model (sets judged
 /// after the training period) as a line with its band, sorted by temperature.
