@@ -107,7 +107,8 @@ fn learn(a: &LearnArgs) -> Result<()> {
             _ => bail!("the configuration watches several structures: name one with --structure"),
         },
     };
-    let (_, model) = crate::io::model::load_structure(s)?;
+    let loaded = std::sync::Arc::new(crate::io::model::load_structure(s)?);
+    let model = &loaded.1;
     let parameters = model.parameters().iter().map(|p| p.name.clone()).collect();
     let mut cfg = settings.tracker.clone();
     cfg.crosscheck_every_sets = 0;
@@ -116,10 +117,7 @@ fn learn(a: &LearnArgs) -> Result<()> {
     cfg.normalisation.training_days = (to - from).num_milliseconds() as f64 / 86_400_000.0 + 1.0;
     let mut tracker = Tracker::new(model.clone(), cfg)?;
     let name = s.name.clone();
-    let models = std::collections::HashMap::from([(
-        name.clone(),
-        std::sync::Arc::new(crate::io::model::load_structure(s)?),
-    )]);
+    let models = std::collections::HashMap::from([(name.clone(), loaded.clone())]);
     let (inputs, _) = crate::io::replay::read_inputs(&a.recording, &models, &settings.identify)?;
     let mut sets = 0u64;
     for (_, input) in inputs {

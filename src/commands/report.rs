@@ -233,27 +233,8 @@ fn report_structure(structure: &str, o: &Outputs) -> Result<Vec<Figure>> {
         {
             p.hlines.push((b, "baseline".into()));
         }
-        for (level, color) in [
-            ("warning", "#ff7f0e"),
-            ("alarm", "#d62728"),
-            ("cleared", "#2ca02c"),
-        ] {
-            let hits: Vec<&Value> = o
-                .alerts
-                .iter()
-                .filter(|a| a["connection"].as_str() == Some(name) && a["level"] == level)
-                .collect();
-            if !hits.is_empty() {
-                p.series.push(
-                    Series::points(
-                        level,
-                        hits.iter().map(|a| day(a)).collect(),
-                        hits.iter().map(|a| f(&a["theta"])).collect(),
-                    )
-                    .with_color(color),
-                );
-            }
-        }
+        p.series
+            .extend(alert_markers(o, name, &day, |a| f(&a["theta"])));
         panels.push(p);
     }
     let stiffness = ("stiffness", panels, 3);
@@ -426,27 +407,8 @@ fn seasons_figures(
             Series::trace("normalised loss", days.to_vec(), get("loss")).with_color("#1f77b4"),
         );
         p.hlines.push((0.0, String::new()));
-        for (level, color) in [
-            ("warning", "#ff7f0e"),
-            ("alarm", "#d62728"),
-            ("cleared", "#2ca02c"),
-        ] {
-            let hits: Vec<&Value> = o
-                .alerts
-                .iter()
-                .filter(|a| a["connection"].as_str() == Some(name) && a["level"] == level)
-                .collect();
-            if !hits.is_empty() {
-                p.series.push(
-                    Series::points(
-                        level,
-                        hits.iter().map(|a| day(a)).collect(),
-                        hits.iter().map(|a| 100.0 * f(&a["drop"])).collect(),
-                    )
-                    .with_color(color),
-                );
-            }
-        }
+        p.series
+            .extend(alert_markers(o, name, day, |a| 100.0 * f(&a["drop"])));
         loss_panels.push(p);
         if let Some(p) = law_panel(structure, name, o, l) {
             law_panels.push(p);
@@ -457,6 +419,38 @@ fn seasons_figures(
         out.push(("temperature", law_panels, 3));
     }
     out
+}
+
+/// The loosening alerts of connection `name` as markers, one series per level (warning,
+/// alarm, cleared), at `value` of each alert.
+fn alert_markers(
+    o: &Outputs,
+    name: &str,
+    day: &dyn Fn(&Value) -> f64,
+    value: impl Fn(&Value) -> f64,
+) -> Vec<Series> {
+    [
+        ("warning", "#ff7f0e"),
+        ("alarm", "#d62728"),
+        ("cleared", "#2ca02c"),
+    ]
+    .into_iter()
+    .filter_map(|(level, color)| {
+        let hits: Vec<&Value> = o
+            .alerts
+            .iter()
+            .filter(|a| a["connection"].as_str() == Some(name) && a["level"] == level)
+            .collect();
+        (!hits.is_empty()).then(|| {
+            Series::points(
+                level,
+                hits.iter().map(|a| day(a)).collect(),
+                hits.iter().map(|a| value(a)).collect(),
+            )
+            .with_color(color)
+        })
+    })
+    .collect()
 }
 
 /// The range of normalised loss drawn, %.

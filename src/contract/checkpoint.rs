@@ -28,6 +28,16 @@ pub struct WalPosition {
     pub modal: u64,
 }
 
+impl WalPosition {
+    /// The position just after this input: where a resume starts once it is handled.
+    pub fn after(&self) -> WalPosition {
+        WalPosition {
+            file: self.file.clone(),
+            modal: self.modal + 1,
+        }
+    }
+}
+
 impl Message for Checkpoint<()> {
     const SCHEMA: &'static str = "boltwatch.checkpoint.v1";
 }

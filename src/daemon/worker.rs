@@ -332,10 +332,7 @@ impl Worker {
                 Input::Set { received, payload } => {
                     self.handle(received, &payload)?;
                     if let Some(p) = pos {
-                        self.handled_upto = Some(WalPosition {
-                            file: p.file,
-                            modal: p.modal + 1,
-                        });
+                        self.handled_upto = Some(p.after());
                     }
                 }
                 Input::Oversize {
@@ -360,10 +357,7 @@ impl Worker {
                     self.dirty = true;
                     self.publish_guarded(received, &payload, actions)?;
                     if let Some(p) = pos {
-                        self.handled_upto = Some(WalPosition {
-                            file: p.file,
-                            modal: p.modal + 1,
-                        });
+                        self.handled_upto = Some(p.after());
                     }
                 }
                 Input::Shutdown => {}
@@ -411,10 +405,7 @@ impl Worker {
                 self.out.log.sync()?;
                 emit(&mut self.out, Output::Modal(set))?;
                 self.handle(received, &bytes)?;
-                self.handled_upto = Some(WalPosition {
-                    file: pos.file,
-                    modal: pos.modal + 1,
-                });
+                self.handled_upto = Some(pos.after());
             }
             FrontEvent::Refused(rej) => {
                 let head = &payload[..payload.len().min(REJECTED_PAYLOAD_LIMIT)];
