@@ -92,8 +92,12 @@ pub fn summary_table(opts: &ReplayOptions, s: &ReplaySummary) -> String {
     }
     let _ = writeln!(
         t,
-        "replayed {} modal sets of {} ({}{:.1} s, {:.0} sets/s) -> {} ({} messages)",
+        "replayed {} modal sets{} of {} ({}{:.1} s, {:.0} inputs/s) -> {} ({} messages)",
         s.sets,
+        match s.readings {
+            0 => String::new(),
+            n => format!(" and {n} environment readings"),
+        },
         opts.recording.display(),
         s.resumed_from
             .map(|k| format!("resumed at set {k}, "))

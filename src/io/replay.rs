@@ -67,8 +67,10 @@ pub fn with_suffix(path: &Path, suffix: &str) -> PathBuf {
 /// The outcome of a replay.
 #[derive(Debug, Clone, Default)]
 pub struct ReplaySummary {
-    /// Modal sets in the recording (all watched structures).
+    /// Modal sets (or accel blocks) in the recording (all watched structures).
     pub sets: usize,
+    /// Environment readings in the recording (all watched structures).
+    pub readings: usize,
     /// Input index the run resumed from.
     pub resumed_from: Option<usize>,
     /// The recording was already replayed to the end (`--resume` on a complete run).
@@ -487,8 +489,13 @@ pub fn replay(
         None
     };
     let mut trackers: BTreeMap<String, Tracker> = BTreeMap::new();
+    let readings = sets
+        .iter()
+        .filter(|(_, i)| matches!(i, Input::Environment(_)))
+        .count();
     let mut summary = ReplaySummary {
-        sets: sets.len(),
+        sets: sets.len() - readings,
+        readings,
         skipped_topics: skipped,
         ..Default::default()
     };
