@@ -25,11 +25,23 @@ pub fn tmp_dir(name: &str) -> PathBuf {
 
 /// Writes scenario `name` with `sets` sets over `days` days.
 pub fn make_scenario(name: &str, sets: usize, days: f64, out: &Path) {
+    make_scenario_with(name, Some(sets), days, false, out);
+}
+
+/// `make_scenario` with the scenario's own number of sets when `sets` is `None`, and the
+/// temperature as environment readings when `environment`.
+pub fn make_scenario_with(
+    name: &str,
+    sets: Option<usize>,
+    days: f64,
+    environment: bool,
+    out: &Path,
+) {
     boltwatch::core::sequential_numerics();
     scenario(&ScenarioArgs {
         name: name.into(),
         model: "config/models/lab-frame.toml".into(),
-        sets: Some(sets),
+        sets,
         days: Some(days),
         seed: 1,
         modes: 9,
@@ -39,7 +51,7 @@ pub fn make_scenario(name: &str, sets: usize, days: f64, out: &Path) {
         loosen: None,
         drop: None,
         day: None,
-        environment: false,
+        environment,
         shape_digits: 0,
         out: out.to_path_buf(),
         raw: Default::default(),

@@ -10,7 +10,7 @@ use zenoh::Wait;
 
 use super::*;
 use crate::suite::common::python_venv;
-use crate::suite::tracker::{make_scenario, payloads, tmp_dir};
+use crate::suite::tracker::{make_scenario, make_scenario_with, payloads, tmp_dir};
 use boltwatch::io::mcap::{ChannelSpec, McapWriter, read_all, read_modal_sets, topic};
 
 /// Cross-checks every 400 sets (and not by time).
@@ -103,6 +103,55 @@ fn daemon_over_zenoh_gives_what_replay_gives() {
     assert_eq!(
         payloads(&read_all(&logs[0]).unwrap(), "stiffness"),
         want("stiffness")
+    );
+}
+
+/// A site whose thermometer is not in the box that identifies the modes: thirty days of
+/// the seasonal scenario (120 sets) with the temperature as 715 hourly environment readings,
+/// published over Zenoh. The daemon joins each set to its reading as replay does, estimate
+/// for estimate, judging every set under a temperature; its log replays to the same.
+#[test]
+fn environment_readings_over_zenoh_are_joined_as_replay_joins_them() {
+    let d = tmp_dir("daemon-environment");
+    let rec = d.join("rec.mcap");
+    make_scenario_with("seasonal", None, 30.0, true, &rec);
+    let mut daemon = Daemon::start(&d, "queue = 2000", CROSSCHECK_400);
+    let s = client(&daemon.endpoint);
+    let outputs = Outputs::subscribe(&s);
+    wait_status(&s, Duration::from_secs(30), "the daemon to answer", |_| {
+        true
+    });
+    let said = run_ok(publish(&rec, &daemon.endpoint, &["--rate", "0"]));
+    assert!(
+        said.contains("published 120 modal sets (835 inputs)"),
+        "{said}"
+    );
+    let reference = replayed(&rec, &d.join("ref.mcap"), &CROSSCHECK_400_ENV);
+    let want = payloads(&reference, "stiffness");
+    assert_eq!(want.len(), 120);
+    let mut got = BTreeMap::new();
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while got.get("stiffness").map_or(0, Vec::len) < 120 {
+        assert!(Instant::now() < deadline, "estimates missing");
+        outputs.drain(&mut got);
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert_eq!(got["stiffness"], want, "estimates differ from replay");
+    assert!(!got.contains_key("rejected"), "{:?}", got.get("rejected"));
+    for e in &want {
+        let t = e["temperature_c"].as_f64();
+        assert!(t.is_some_and(|t| (-40.0..50.0).contains(&t)), "{e:#}");
+    }
+    drop(outputs);
+    drop(s);
+    let exit = daemon.terminate();
+    assert!(exit.success(), "{exit:?}; log:\n{}", daemon.log());
+    let logs = daemon.log_files();
+    let again = replayed(&logs[0], &d.join("again.mcap"), &CROSSCHECK_400_ENV);
+    assert_eq!(
+        payloads(&again, "stiffness"),
+        want,
+        "the log replays otherwise"
     );
 }
 
