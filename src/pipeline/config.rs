@@ -121,13 +121,10 @@ impl TrackerConfig {
         if let Err((key, reason)) = self.normalisation.validate() {
             return bad(&format!("normalisation.{key}"), &reason);
         }
+        if let Err((key, reason)) = self.drift.validate() {
+            return bad(&format!("drift.{key}"), &reason);
+        }
         let nonneg = |v: f64| v.is_finite() && v >= 0.0;
-        if !nonneg(self.drift.level_per_day) {
-            return bad("drift.level_per_day", "must be a finite number ≥ 0");
-        }
-        if !nonneg(self.drift.trend_per_day) {
-            return bad("drift.trend_per_day", "must be a finite number ≥ 0");
-        }
         if self.baseline_sets == 0 {
             return bad("baseline_sets", "must be at least 1");
         }

@@ -71,6 +71,24 @@ pub struct NormalisationConfig {
     /// A law file (`boltwatch normalisation learn`): when set, the tracker judges by the
     /// models in it, frozen, instead of what it learned itself ("": none).
     pub law: String,
+    /// The drift filters of the normalised levels: quieter than `[tracker.drift]`, whose
+    /// filters follow θ itself through the seasons (module docs, step 4).
+    pub drift: DriftNoise,
+}
+
+/// `[tracker.normalisation.drift]` by default: a level wandering 0.2 %/√day and a trend
+/// 0.5 %/day per √day. A healthy connection's normalised level is stationary (the season
+/// is in the expectation), so the filter may average over days: on the lab frame (a set's
+/// σ of ln θ about 4.5 %, four sets a day) its level settles to σ ≈ 1.8 % instead of 2.9 %
+/// under the tracker's drift intensities, and a 15 % loss stands clear of a 10 % warning
+/// threshold. A sudden loss restarts the filter (the step tests of [`super::drift`]); a
+/// slow one is followed through the trend and the same window test.
+pub fn normalised_drift() -> DriftNoise {
+    DriftNoise {
+        level_per_day: 0.002,
+        trend_per_day: 0.005,
+        ..DriftNoise::default()
+    }
 }
 
 impl Default for NormalisationConfig {
@@ -86,6 +104,7 @@ impl Default for NormalisationConfig {
             extrapolation_margin: 0.1,
             max_age_s: 3600.0,
             law: String::new(),
+            drift: normalised_drift(),
         }
     }
 }
@@ -125,7 +144,14 @@ impl NormalisationConfig {
         if !(self.max_age_s.is_finite() && self.max_age_s >= 0.0) {
             return Err(("max_age_s", "must be a number of seconds ≥ 0".into()));
         }
-        Ok(())
+        self.drift.validate().map_err(|(key, why)| {
+            let key = match key {
+                "level_per_day" => "drift.level_per_day",
+                "trend_per_day" => "drift.trend_per_day",
+                _ => "drift.step_z",
+            };
+            (key, why)
+        })
     }
 
     fn basis(&self) -> Basis {
@@ -284,7 +310,6 @@ impl NormalisationState {
     pub fn judge(
         &mut self,
         cfg: &NormalisationConfig,
-        drift: DriftNoise,
         set: &SetEstimate,
         conditions: Conditions,
     ) -> Result<Judgement, String> {
@@ -347,7 +372,7 @@ impl NormalisationState {
             }
         }
         let (source, pred, extrapolated, note) = expectation?;
-        let parameters = self.filter(drift, set.days, &y, &pred);
+        let parameters = self.filter(cfg.drift, set.days, &y, &pred);
         Ok(Judgement {
             source,
             parameters,

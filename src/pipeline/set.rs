@@ -179,12 +179,11 @@ impl Tracker {
             std,
             covariance: covariance.as_deref(),
         };
-        Some(self.state.normalisation.judge(
-            &self.cfg.normalisation,
-            self.cfg.drift,
-            &estimate,
-            conditions.clone(),
-        ))
+        Some(
+            self.state
+                .normalisation
+                .judge(&self.cfg.normalisation, &estimate, conditions.clone()),
+        )
     }
 
     /// The estimate published for the set.

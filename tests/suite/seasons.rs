@@ -194,8 +194,7 @@ fn season_table() {
 /// The seasonal must-shows on ten seeds, two years each: with a thermometer, no loosening
 /// alert at all on a healthy frame (the first year included), a 30 % loss on day 400
 /// alarmed within 2 days on that connection only and never cleared, a 15 % loss warned
-/// within 3 days on 8 of the 10 seeds (4 days on all; the target is 3 on all) and never
-/// cleared, and the healthy connections' normalised residuals
+/// within 3 days and never cleared, and the healthy connections' normalised residuals
 /// within 2σ on 93–97 % of the sets after the first year; without a thermometer
 /// (output-only), no alarm on a healthy frame and the 30 % loss alarmed within 7 days.
 #[test]
@@ -209,11 +208,10 @@ fn seasons_raise_no_false_alarm_and_find_a_loss() {
         fraction: f,
         day: 400.0,
     };
-    let results: Vec<(Vec<String>, Vec<u64>)> = (1..=10u64)
+    let results: Vec<Vec<String>> = (1..=10u64)
         .into_par_iter()
         .map(|s| {
             let mut bad = Vec::new();
-            let mut late = Vec::new();
             let healthy = season(s, Loss::None, Mode::Auto, true);
             if !healthy.alerts.is_empty() {
                 bad.push(format!("seed {s} healthy: {:?}", healthy.alerts));
@@ -231,11 +229,9 @@ fn seasons_raise_no_false_alarm_and_find_a_loss() {
             if !others.is_empty() {
                 bad.push(format!("seed {s} 30 %: alerts elsewhere {others:?}"));
             }
-            // The target is 3 days on every seed; met on 8 of 10 (see below).
             let l15 = season(s, loss(0.15), Mode::Auto, true);
             match detection(&l15, LOST, AlertLevel::Warning, 400.0) {
                 (Some(d), false) if d <= 3.0 => {}
-                (Some(d), false) if d <= 4.0 => late.push(s),
                 other => bad.push(format!("seed {s} 15 %: warning {other:?}")),
             }
             let blind = season(s, Loss::None, Mode::OutputOnly, false);
@@ -252,19 +248,11 @@ fn seasons_raise_no_false_alarm_and_find_a_loss() {
                 (Some(d), _) if d <= 7.0 => {}
                 other => bad.push(format!("seed {s} output-only 30 %: alarm {other:?}")),
             }
-            (bad, late)
+            bad
         })
         .collect();
-    let failures: Vec<&String> = results.iter().flat_map(|r| &r.0).collect();
+    let failures: Vec<&String> = results.iter().flatten().collect();
     assert!(failures.is_empty(), "{failures:#?}");
-    // A 15 % loss is about 2σ of one set of the lost connection: the drift filter is 95 %
-    // sure of a 10 % loss after 12 sets in about 4 of 5 cases (pipeline::drift). Two of the
-    // ten seeds (4 and 7) take 3.5 and 4 days.
-    let late: Vec<u64> = results.iter().flat_map(|r| r.1.clone()).collect();
-    assert!(
-        late.len() <= 2,
-        "15 % loss warned after more than 3 days on seeds {late:?}"
-    );
 }
 
 /// The first `n` sets of a seasonal record (seed 1) over `days`, as validated sets.
