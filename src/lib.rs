@@ -1,6 +1,7 @@
 //! boltwatch: structural health monitoring of bolted connections by FE model updating.
 //!
-//! See `README.md` and the paper map in `src/core/mod.rs`.
+//! See `README.md` for a tour, `docs/` for the user guide, and `docs/paper.md` for the
+//! function implementing each equation of the paper.
 
 pub mod commands;
 pub mod contract;

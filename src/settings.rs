@@ -124,7 +124,8 @@ impl Settings {
             if !f.is_file() {
                 bail!("configuration file {} does not exist", f.display());
             }
-            b = b.add_source(config::File::from(f).format(config::FileFormat::Toml));
+            let text = relative_to_file(f)?;
+            b = b.add_source(config::File::from_str(&text, config::FileFormat::Toml));
         }
         let env: config::Map<String, String> = env.into_iter().collect();
         // The base of the default state directory: the given environment first (tests), then
@@ -265,6 +266,52 @@ impl Settings {
     }
 }
 
+/// The keys of a configuration file that hold paths: a relative path in a file is relative
+/// to that file's folder (so a site's configuration and its models move together).
+const PATH_KEYS: &[&[&str]] = &[
+    &["zenoh", "config_file"],
+    &["daemon", "state_dir"],
+    &["tracker", "normalisation", "law"],
+];
+
+/// The text of configuration file `f` with its relative paths (the [`PATH_KEYS`] and every
+/// `structures[].model` that is not a bundled model) made relative to `f`'s folder.
+fn relative_to_file(f: &Path) -> Result<String> {
+    let text = std::fs::read_to_string(f)
+        .with_context(|| format!("cannot read configuration file {}", f.display()))?;
+    let mut doc: toml::Table = toml::from_str(&text)
+        .with_context(|| format!("bad configuration {}: not TOML", f.display()))?;
+    let dir = f.parent().unwrap_or(Path::new(""));
+    let rebase = |v: &mut toml::Value| {
+        if let toml::Value::String(p) = v
+            && !p.is_empty()
+            && !p.starts_with(crate::io::model::BUNDLED)
+            && Path::new(p.as_str()).is_relative()
+        {
+            *p = dir.join(p.as_str()).to_string_lossy().into_owned();
+        }
+    };
+    for key in PATH_KEYS {
+        let mut table = Some(&mut doc);
+        for k in &key[..key.len() - 1] {
+            table = table
+                .and_then(|t| t.get_mut(*k))
+                .and_then(|v| v.as_table_mut());
+        }
+        if let Some(v) = table.and_then(|t| t.get_mut(key[key.len() - 1])) {
+            rebase(v);
+        }
+    }
+    if let Some(toml::Value::Array(list)) = doc.get_mut("structures") {
+        for entry in list.iter_mut().filter_map(|e| e.as_table_mut()) {
+            if let Some(v) = entry.get_mut("model") {
+                rebase(v);
+            }
+        }
+    }
+    Ok(toml::to_string(&doc)?)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -319,6 +366,48 @@ mod tests {
             let msg = format!("{e:#}");
             assert!(msg.contains(key), "{pairs:?}: {msg}");
         }
+    }
+
+    /// A relative path in a configuration file is relative to the file's folder; absolute
+    /// paths, bundled models and an environment override (relative to the working
+    /// directory) are kept as written.
+    #[test]
+    fn paths_in_a_file_are_relative_to_it() {
+        let dir = std::env::temp_dir().join(format!("bw-settings-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let f = dir.join("site.toml");
+        // The Zenoh file must exist (it is checked), wherever it is resolved to.
+        std::fs::write(dir.join("zenoh.json5"), "{}").unwrap();
+        std::fs::write(
+            &f,
+            "[[structures]]\nname = \"a\"\nmodel = \"models/a.toml\"\n\n\
+             [[structures]]\nname = \"b\"\nmodel = \"bundled:lab-frame\"\n\n\
+             [[structures]]\nname = \"c\"\nmodel = \"/srv/c.toml\"\n\n\
+             [daemon]\nstate_dir = \"state\"\n\n\
+             [zenoh]\nconfig_file = \"zenoh.json5\"\n\n\
+             [tracker.normalisation]\nlaw = \"law.json\"\n",
+        )
+        .unwrap();
+        let s = Settings::load_with_env(Some(&f), env(&[])).unwrap();
+        let models: Vec<_> = s.structures.iter().map(|s| s.model.clone()).collect();
+        assert_eq!(
+            models,
+            [
+                dir.join("models/a.toml"),
+                PathBuf::from("bundled:lab-frame"),
+                PathBuf::from("/srv/c.toml")
+            ]
+        );
+        assert_eq!(s.daemon.state_dir, dir.join("state"));
+        assert_eq!(s.zenoh.config_file, dir.join("zenoh.json5"));
+        assert_eq!(
+            s.tracker.normalisation.law,
+            dir.join("law.json").to_string_lossy()
+        );
+        let s = Settings::load_with_env(Some(&f), env(&[("BOLTWATCH__DAEMON__STATE_DIR", "here")]))
+            .unwrap();
+        assert_eq!(s.daemon.state_dir, PathBuf::from("here"));
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     /// The default state directory is under `$XDG_STATE_HOME`, else `~/.local/state`,

@@ -19,7 +19,8 @@ use crate::plot::{Panel, Scale, Series, figure_svg};
 
 #[derive(Debug, clap::Args)]
 pub struct DiagnoseArgs {
-    /// Model file (TOML), or the `model.json` of a model imported from matrices.
+    /// Model file (TOML), a bundled model (`bundled:lab-frame`, `bundled:space-frame`, ...),
+    /// or the `model.json` of a model imported from matrices.
     #[arg(long)]
     pub model: PathBuf,
     /// Modal set (boltwatch.modal_set.v1).

@@ -17,7 +17,8 @@ use crate::core::model::{Csc, ParameterKind};
 
 #[derive(Debug, clap::Args)]
 pub struct ExportArgs {
-    /// Model file (TOML), or the `model.json` of a model imported from matrices.
+    /// Model file (TOML), a bundled model (`bundled:lab-frame`, `bundled:space-frame`, ...),
+    /// or the `model.json` of a model imported from matrices.
     #[arg(long)]
     pub model: PathBuf,
     /// Output directory (created if missing).

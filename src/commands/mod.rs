@@ -28,7 +28,8 @@ pub use crate::io::model::{load_description, load_model, load_spec};
 /// `--model M.toml [--theta a,b,…]`: a model evaluated at θ (default: its nominal θ).
 #[derive(Debug, clap::Args)]
 pub struct ModelAtTheta {
-    /// Model file (TOML), or the `model.json` of a model imported from matrices.
+    /// Model file (TOML), a bundled model (`bundled:lab-frame`, `bundled:space-frame`, ...),
+    /// or the `model.json` of a model imported from matrices.
     #[arg(long)]
     pub model: PathBuf,
     /// Parameter values θ, comma separated (default: the model's nominal θ).

@@ -24,8 +24,8 @@ use crate::scenario::{Event, NAMES, Scenario};
 pub struct ScenarioArgs {
     /// Scenario: healthy, loosening, sudden or mass.
     pub name: String,
-    /// Model the sets are simulated from.
-    #[arg(long, default_value = "config/models/lab-frame.toml")]
+    /// Model the sets are simulated from: a model file or a bundled model (`bundled:NAME`).
+    #[arg(long, default_value = "bundled:lab-frame")]
     pub model: PathBuf,
     /// Number of modal sets (default 10,000; seasonal: four a day).
     #[arg(long)]
@@ -134,8 +134,7 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
     {
         bail!("--days = {d} must be a finite number > 0");
     }
-    let text = std::fs::read_to_string(&args.model)
-        .with_context(|| format!("cannot read model file {}", args.model.display()))?;
+    let text = crate::io::model::read_model_text(&args.model)?;
     let spec: ModelSpec =
         toml::from_str(&text).with_context(|| format!("model file {}", args.model.display()))?;
     let model = Model::from_spec(&spec)?;

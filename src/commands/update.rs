@@ -50,7 +50,8 @@ pub enum WeightsArg {
 
 #[derive(Debug, clap::Args)]
 pub struct UpdateArgs {
-    /// Model file (TOML), or the `model.json` of a model imported from matrices.
+    /// Model file (TOML), a bundled model (`bundled:lab-frame`, `bundled:space-frame`, ...),
+    /// or the `model.json` of a model imported from matrices.
     #[arg(long)]
     pub model: PathBuf,
     /// Modal set (boltwatch.modal_set.v1).

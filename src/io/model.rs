@@ -10,7 +10,62 @@ use crate::core::model::Model;
 use crate::core::model::spec::ModelSpec;
 use crate::settings::StructureSettings;
 
-/// Reads a TOML model file without assembling it.
+/// The models compiled into the binary, named `bundled:<name>` wherever a model file is
+/// expected: the files of `config/models/`, so that an installed binary has them anywhere.
+pub const BUNDLED_MODELS: &[(&str, &str)] = &[
+    (
+        "lab-frame",
+        include_str!("../../config/models/lab-frame.toml"),
+    ),
+    (
+        "lab-frame-simplified",
+        include_str!("../../config/models/lab-frame-simplified.toml"),
+    ),
+    (
+        "space-frame",
+        include_str!("../../config/models/space-frame.toml"),
+    ),
+    (
+        "four-bay-solid",
+        include_str!("../../config/models/four-bay-solid.toml"),
+    ),
+    (
+        "cantilever-case1",
+        include_str!("../../config/models/cantilever-case1.toml"),
+    ),
+    (
+        "cantilever-case2",
+        include_str!("../../config/models/cantilever-case2.toml"),
+    ),
+    (
+        "cantilever-truth",
+        include_str!("../../config/models/cantilever-truth.toml"),
+    ),
+];
+
+/// The prefix naming a bundled model ([`BUNDLED_MODELS`]).
+pub const BUNDLED: &str = "bundled:";
+
+/// The text of a TOML model file, or of a bundled model (`bundled:<name>`).
+pub fn read_model_text(path: &Path) -> Result<String> {
+    let Some(name) = path.to_str().and_then(|p| p.strip_prefix(BUNDLED)) else {
+        return std::fs::read_to_string(path)
+            .with_context(|| format!("cannot read model file {}", path.display()));
+    };
+    match BUNDLED_MODELS.iter().find(|(n, _)| *n == name) {
+        Some((_, text)) => Ok(text.to_string()),
+        None => bail!(
+            "no bundled model `{name}`; the bundled models are {}",
+            BUNDLED_MODELS
+                .iter()
+                .map(|(n, _)| format!("{BUNDLED}{n}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
+    }
+}
+
+/// Reads a TOML model file (or a bundled model) without assembling it.
 pub fn load_spec(path: &Path) -> Result<ModelSpec> {
     if is_matrices(path) {
         bail!(
@@ -18,8 +73,7 @@ pub fn load_spec(path: &Path) -> Result<ModelSpec> {
             path.display()
         );
     }
-    let text = std::fs::read_to_string(path)
-        .with_context(|| format!("cannot read model file {}", path.display()))?;
+    let text = read_model_text(path)?;
     toml::from_str(&text).with_context(|| format!("model file {}", path.display()))
 }
 
@@ -29,8 +83,7 @@ pub fn load_model(path: &Path) -> Result<Model> {
     if is_matrices(path) {
         return Ok(crate::core::model::import::read_matrices(path)?);
     }
-    let text = std::fs::read_to_string(path)
-        .with_context(|| format!("cannot read model file {}", path.display()))?;
+    let text = read_model_text(path)?;
     Model::from_toml(&text).with_context(|| format!("model file {}", path.display()))
 }
 

@@ -546,16 +546,13 @@ mod tests {
             sets.iter().map(|s| s.time).collect::<Vec<_>>(),
             vec![t(50.0), t(110.0)]
         );
-        let mut other = serde_json::to_value(
-            serde_json::from_slice::<Accel>(&payload(300.0, &bl[0].1)).unwrap(),
-        )
-        .unwrap();
-        other["structure"] = "t".into();
-        let e = f.handle(other.to_string().as_bytes());
+        let mut other: Accel = serde_json::from_slice(&payload(300.0, &bl[0].1)).unwrap();
+        other.structure = "t".into();
+        let e = f.handle(&serde_json::to_vec(&other).unwrap());
         assert!(matches!(&e[..], [FrontEvent::Refused(r)] if r.field == "structure"));
-        other["structure"] = "s".into();
-        other["channels"] = serde_json::json!(["a", "x"]);
-        let e = f.handle(other.to_string().as_bytes());
+        other.structure = "s".into();
+        other.channels = vec!["a".into(), "x".into()];
+        let e = f.handle(&serde_json::to_vec(&other).unwrap());
         assert!(matches!(&e[..], [FrontEvent::Refused(r)] if r.field == "channels[1]"));
     }
 }

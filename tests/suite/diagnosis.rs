@@ -114,7 +114,7 @@ fn a_hidden_member_stiffness_change_is_named() {
 /// A uniform change of E moves every frequency and no mode shape, and the bolt stiffnesses
 /// absorb part of it, so only a large change brings the ε of the nominal class to 3.3 times
 /// its noise level (at −25 %, ε after is still 37 % of before); a few per cent are *named*
-/// (the detectability table in the README).
+/// (the detectability table in `docs/design/diagnosis.md`).
 #[test]
 fn a_hidden_modulus_change_is_named() {
     hidden_effect_is_named(&lab_spec_without_modulus(), "modulus@global=-0.4", 4);
@@ -416,7 +416,7 @@ fn diagnose_command_writes_the_contract_and_plots() {
 /// least 4 of 5 noise seeds. A study, not a check (minutes in release):
 /// `cargo test --release --test tests detectability -- --ignored --nocapture`.
 #[test]
-#[ignore = "a study of several minutes; its table is in the README"]
+#[ignore = "a study of several minutes; its table is in docs/design/diagnosis.md"]
 fn detectability_table() {
     let ladders: [(&str, &str, &[f64], bool); 7] = [
         ("added-mass", "B2.3", &[0.05, 0.1, 0.2, 0.4, 0.8], false),

@@ -186,7 +186,7 @@ fn a_parameter_beyond_what_the_data_resolve_stops_at_its_bound() {
 /// nominal, 9 modes, 1 % frequency CoV, 5 % NSD), both from θ0 = 1 as whole processes. Both
 /// reach the same minimum: ε within 1e-9 relative and θ within 1e-3 σ (the two stop on
 /// steps below 1e-5 relative, so θ can differ by about that). The times of interleaved runs
-/// are printed (medians; the README's figures come from release builds), never asserted.
+/// are printed (medians; the figures in docs/design/ come from release builds), never asserted.
 #[test]
 fn a_scipy_gauss_newton_reaches_the_same_lab_frame_minimum() {
     use super::common::run_timed as run;

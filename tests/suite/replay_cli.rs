@@ -305,3 +305,71 @@ fn bad_configuration_fails_naming_the_key() {
     assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("tracker.alerts.persistence"));
 }
+
+/// The binary works from any folder: the default configuration's model is compiled in
+/// (`bundled:lab-frame`), and a relative path in a configuration file is relative to that
+/// file, not to the working directory. Run from an empty folder elsewhere, a replay of a
+/// bundled recording with the defaults and one with a configuration file beside a copied
+/// model (`model = "models/frame.toml"`) give the same bytes; a bundled model that does
+/// not exist is named, with the ones that do.
+#[test]
+fn replay_works_from_any_folder_with_paths_relative_to_the_configuration() {
+    let d = tmp_dir("anywhere");
+    let cwd = d.join("elsewhere");
+    let site = d.join("site");
+    std::fs::create_dir_all(&cwd).unwrap();
+    std::fs::create_dir_all(site.join("models")).unwrap();
+    let rec = d.join("rec.mcap");
+    make_scenario("healthy", 30, 1.0, &rec);
+    let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
+    std::fs::copy(
+        repo.join("config/models/lab-frame.toml"),
+        site.join("models/frame.toml"),
+    )
+    .unwrap();
+    let config = site.join("boltwatch.toml");
+    std::fs::write(
+        &config,
+        "[[structures]]\nname = \"lab-frame\"\nmodel = \"models/frame.toml\"\n",
+    )
+    .unwrap();
+    let replay = |config: Option<&Path>, out: &str| {
+        let mut c = bin();
+        c.current_dir(&cwd)
+            .arg("replay")
+            .arg(&rec)
+            .arg("-o")
+            .arg(out);
+        if let Some(f) = config {
+            c.arg("--config").arg(f);
+        }
+        let o = c.envs(ENV).output().unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        std::fs::read(cwd.join(out)).unwrap()
+    };
+    let bundled = replay(None, "bundled.mcap");
+    let beside = replay(Some(&config), "beside.mcap");
+    assert!(!bundled.is_empty());
+    assert!(bundled == beside, "the bundled and the copied model differ");
+    std::fs::write(
+        &config,
+        "[[structures]]\nname = \"lab-frame\"\nmodel = \"bundled:lab-fram\"\n",
+    )
+    .unwrap();
+    let o = bin()
+        .current_dir(&cwd)
+        .arg("replay")
+        .arg(&rec)
+        .arg("--config")
+        .arg(&config)
+        .arg("-o")
+        .arg("x.mcap")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("no bundled model `lab-fram`") && err.contains("bundled:lab-frame"),
+        "{err}"
+    );
+}

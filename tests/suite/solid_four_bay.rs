@@ -10,7 +10,7 @@ use super::solid::{four_bay, four_bay_text, two_bay_coarse};
 /// `boltwatch export-matrices` wrote: the same 12 frequencies to 1e-6 relative (both
 /// converge the eigenvalues to near machine precision; 1e-6 is the bound and leaves
 /// room for the 17-digit round trip through the files). Both run as whole processes; their
-/// times are printed (the figures in the README come from a release build), never
+/// times are printed (the figures in docs/design/models.md come from a release build), never
 /// asserted.
 #[test]
 #[cfg_attr(

@@ -807,7 +807,7 @@ impl FileEffect for Splice {
             }
         }
         // Interior locations of the member move to the part that holds them.
-        let relocate = |at: &mut String| relocate_split(at, &m.name, k, (&a, &node, &b));
+        let relocate = |at: &mut String| space::relocate_split(at, &m.name, k, (&a, &node, &b));
         for c in spec.channels.iter_mut() {
             relocate(&mut c.at);
         }
@@ -859,23 +859,4 @@ impl FileEffect for Splice {
     fn coordinate(&self, value: f64) -> f64 {
         1.0 / value
     }
-}
-
-/// A location `<member>.<j>` of a member split at mesh node `k` into parts `a` and `b`
-/// joined at `node`, renamed to where it now is (`a.j`, `node` or `b.(j − k)`); any other
-/// location is left as it is. Shared by the plane and space frames' splices.
-pub(super) fn relocate_split(at: &mut String, member: &str, k: usize, parts: (&str, &str, &str)) {
-    let (a, node, b) = parts;
-    let Some(j) = at
-        .strip_prefix(member)
-        .and_then(|rest| rest.strip_prefix('.'))
-        .and_then(|j| j.parse::<usize>().ok())
-    else {
-        return;
-    };
-    *at = match j.cmp(&k) {
-        std::cmp::Ordering::Less => format!("{a}.{j}"),
-        std::cmp::Ordering::Equal => node.to_string(),
-        std::cmp::Ordering::Greater => format!("{b}.{}", j - k),
-    };
 }

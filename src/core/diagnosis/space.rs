@@ -328,7 +328,7 @@ pub fn splice(sf: &mut SpaceFrameSpec, location: &str, u: f64) -> Result<(), Dia
         }
     }
     let relocate = |at: &mut String| {
-        super::effects::relocate_split(at, &m.name, k, (&a, &node, &b));
+        relocate_split(at, &m.name, k, (&a, &node, &b));
     };
     for c in sf.channels.iter_mut() {
         relocate(&mut c.at);
@@ -396,4 +396,23 @@ pub fn axial_force_step(sf: &SpaceFrameSpec, location: &str) -> f64 {
     member_length_ei(sf, location).map_or(1.0, |(l, _, ei)| {
         0.02 * std::f64::consts::PI.powi(2) * ei / (l * l)
     })
+}
+
+/// A location `<member>.<j>` of a member split at mesh node `k` into parts `a` and `b`
+/// joined at `node`, renamed to where it now is (`a.j`, `node` or `b.(j − k)`); any other
+/// location is left as it is. Shared by the plane and space frames' splices.
+pub(super) fn relocate_split(at: &mut String, member: &str, k: usize, parts: (&str, &str, &str)) {
+    let (a, node, b) = parts;
+    let Some(j) = at
+        .strip_prefix(member)
+        .and_then(|rest| rest.strip_prefix('.'))
+        .and_then(|j| j.parse::<usize>().ok())
+    else {
+        return;
+    };
+    *at = match j.cmp(&k) {
+        std::cmp::Ordering::Less => format!("{a}.{j}"),
+        std::cmp::Ordering::Equal => node.to_string(),
+        std::cmp::Ordering::Greater => format!("{b}.{}", j - k),
+    };
 }

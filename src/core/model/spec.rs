@@ -19,9 +19,11 @@
 //! Locations (`at`) are model nodes (`J1L`) or interior mesh nodes of a member, numbered
 //! from the member's `from` end (`C2L.3`). Directions are global: `x`, `y`, `rz`.
 
+use nalgebra::Vector3;
 use serde::Deserialize;
 
 use super::ModelError;
+use super::frame3d::Section3;
 
 /// A whole model file.
 #[derive(Debug, Clone, Deserialize)]
@@ -60,7 +62,7 @@ pub struct ModelSpec {
     /// A space frame (six DOF per node), instead of the plane-frame entries above
     /// (issue 25, [`super::space`]).
     #[serde(default)]
-    pub space_frame: Option<super::space::SpaceFrameSpec>,
+    pub space_frame: Option<SpaceFrameSpec>,
     /// Defaults of the Bayesian MAP (14) for this model; command-line flags override them.
     #[serde(default)]
     pub bayesian: BayesSpec,
@@ -277,5 +279,222 @@ impl ModelSpec {
             });
         }
         Ok(())
+    }
+}
+
+// Space frames (`[space_frame]`, assembled by [`super::space`]).
+
+/// The local axes a connection spring can act about: x, y, z of the member.
+pub const AXES: [&str; 3] = ["torsion", "weak", "strong"];
+
+#[allow(non_snake_case)]
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Material3 {
+    pub name: String,
+    pub E: f64,
+    pub nu: f64,
+    pub rho: f64,
+}
+
+#[allow(non_snake_case)]
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SectionSpec3 {
+    pub name: String,
+    pub A: f64,
+    /// Bending in the local x–z plane (about local y), m⁴.
+    pub Iy: f64,
+    /// Bending in the local x–y plane (about local z, the strong axis of a beam whose
+    /// local y is up), m⁴.
+    pub Iz: f64,
+    pub J: f64,
+    /// Polar moment for the torsional inertia; `Iy + Iz` when absent.
+    pub Jp: Option<f64>,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Node3 {
+    pub name: String,
+    pub x: f64,
+    pub y: f64,
+    #[serde(default)]
+    pub z: f64,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Joint3 {
+    pub node: String,
+    /// kg, on each translation.
+    #[serde(default)]
+    pub mass: f64,
+    /// Rotary inertia about global x, y, z (kg·m²).
+    #[serde(default)]
+    pub inertia: [f64; 3],
+    /// Member-end offset (m): member ends at this joint stop `size` short of its centre
+    /// along their axes and move with it as a rigid body (u_end = u + ω × r).
+    #[serde(default)]
+    pub size: f64,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Member3 {
+    pub name: String,
+    pub from: String,
+    pub to: String,
+    pub section: String,
+    pub material: String,
+    pub elements: usize,
+    /// Reference vector fixing local y ([`default_reference`] when absent).
+    pub orientation: Option<[f64; 3]>,
+    /// Axial force (N, tension positive): its geometric stiffness enters K0.
+    #[serde(default)]
+    pub axial_force: f64,
+}
+
+/// A bolted member end: a rotational spring (N·m/rad) about each named local axis of the
+/// member (`torsion` = x, `weak` = y, `strong` = z); the other axes are rigid. The axes are
+/// named `<name>.<axis>`, `name` defaulting to `<member>@<node>`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Connection3 {
+    pub name: Option<String>,
+    pub member: String,
+    pub node: String,
+    pub torsion: Option<f64>,
+    pub weak: Option<f64>,
+    pub strong: Option<f64>,
+}
+
+impl Connection3 {
+    /// The connection's name, `<member>@<node>` unless given.
+    pub fn name(&self) -> String {
+        self.name
+            .clone()
+            .unwrap_or_else(|| format!("{}@{}", self.member, self.node))
+    }
+
+    /// The names of its sprung axes with their stiffness.
+    pub fn axes(&self) -> impl Iterator<Item = (String, f64)> + '_ {
+        let name = self.name();
+        [self.torsion, self.weak, self.strong]
+            .into_iter()
+            .zip(AXES)
+            .filter_map(move |(k, ax)| k.map(|k| (format!("{name}.{ax}"), k)))
+    }
+}
+
+/// A lumped mass (kg, on the three translations) and rotary inertia (kg·m² about global x,
+/// y, z) at a location: a node, or `<member>.<k>` (a mesh node, from the `from` end).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Mass3 {
+    pub at: String,
+    #[serde(default)]
+    pub mass: f64,
+    #[serde(default)]
+    pub inertia: [f64; 3],
+}
+
+/// A discrete spring along one global DOF (`x` … `rz`) between locations `a` and `b`, or
+/// from `a` to the ground (an elastic support) when `b` is absent; N/m or N·m/rad.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Spring3 {
+    pub name: String,
+    pub a: String,
+    pub b: Option<String>,
+    pub dof: String,
+    pub k: f64,
+}
+
+/// `[space_frame]` in a model file.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SpaceFrameSpec {
+    pub materials: Vec<Material3>,
+    pub sections: Vec<SectionSpec3>,
+    pub nodes: Vec<Node3>,
+    pub members: Vec<Member3>,
+    #[serde(default)]
+    pub joints: Vec<Joint3>,
+    #[serde(default)]
+    pub supports: Vec<SupportSpec>,
+    /// DOFs fixed at every node and mesh node (`["z", "rx", "ry"]`: a frame braced out of
+    /// its x–y plane, analysed in-plane).
+    #[serde(default)]
+    pub restrain: Vec<String>,
+    #[serde(default)]
+    pub connections: Vec<Connection3>,
+    #[serde(default)]
+    pub masses: Vec<Mass3>,
+    #[serde(default)]
+    pub springs: Vec<Spring3>,
+    #[serde(default)]
+    pub parameters: Vec<ParameterSpec>,
+    #[serde(default)]
+    pub channels: Vec<ChannelSpec>,
+}
+
+impl SpaceFrameSpec {
+    /// The position of a node.
+    pub fn position(&self, node: &str) -> Option<Vector3<f64>> {
+        self.nodes
+            .iter()
+            .find(|n| n.name == node)
+            .map(|n| Vector3::new(n.x, n.y, n.z))
+    }
+
+    /// The section properties of a member, from its material and section entries.
+    pub fn section_of(&self, m: &Member3) -> Result<Section3, ModelError> {
+        fn find<'a, T>(
+            list: &'a [T],
+            name: &str,
+            field: &str,
+            what: &'static str,
+            key: impl Fn(&T) -> &str,
+        ) -> Result<&'a T, ModelError> {
+            list.iter()
+                .find(|x| key(x) == name)
+                .ok_or_else(|| ModelError::Unknown {
+                    field: field.to_string(),
+                    what,
+                    name: name.to_string(),
+                })
+        }
+        let field = format!("members.{}", m.name);
+        let mat = find(&self.materials, &m.material, &field, "material", |x| {
+            &x.name
+        })?;
+        let sec = find(&self.sections, &m.section, &field, "section", |x| &x.name)?;
+        Ok(Section3 {
+            E: mat.E,
+            G: mat.E / (2.0 * (1.0 + mat.nu)),
+            rho: mat.rho,
+            A: sec.A,
+            Iy: sec.Iy,
+            Iz: sec.Iz,
+            J: sec.J,
+            Jp: sec.Jp.unwrap_or(sec.Iy + sec.Iz),
+        })
+    }
+
+    /// The joint-centre offset of member ends at `node` (m).
+    pub fn joint_size(&self, node: &str) -> f64 {
+        self.joints
+            .iter()
+            .find(|j| j.node == node)
+            .map_or(0.0, |j| j.size)
+    }
+
+    /// Every connection axis name with its stiffness, in file order.
+    pub fn connection_axes(&self) -> Vec<(String, f64)> {
+        self.connections
+            .iter()
+            .flat_map(Connection3::axes)
+            .collect()
     }
 }

@@ -6,8 +6,14 @@
 //! log parameterization itself. Mode matching, the global search and the Bayesian MAP all
 //! read their bounds from here, so a parameter "at a bound" means the same in each.
 
-use super::mode_matching::AtBound;
 use crate::core::model::Model;
+
+/// Which bound a parameter ended at (`ModeMatchingOptions::bounds`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AtBound {
+    Lower,
+    Upper,
+}
 
 /// How close (in ln θ) to a bound counts as on it when a result is reported.
 pub const AT_BOUND_TOL: f64 = 1e-9;

@@ -11,12 +11,12 @@ pub mod search;
 pub mod strategy;
 pub mod variance;
 
-pub use bounds::LogBounds;
+pub use bounds::{AtBound, LogBounds};
 pub use data::{MeasuredData, RawMode, TargetMode, TargetShape, Weighting};
 pub use globalize::{RESTART_STARTS, StartPath};
 pub use mode_matching::{
-    AtBound, FinalStep, FirstOrder, ModeMatching, ModeMatchingOptions, ModeMatchingResult,
-    StepControl, Termination,
+    FinalStep, FirstOrder, ModeMatching, ModeMatchingOptions, ModeMatchingResult, StepControl,
+    Termination,
 };
 pub use residual::{Evaluation, Evaluator, Pairing};
 

@@ -23,7 +23,7 @@ use faer::linalg::solvers::{Llt, Solve};
 use faer::{Mat, Side};
 
 use super::UpdateError;
-use super::bounds::LogBounds;
+use super::bounds::{AtBound, LogBounds};
 use super::data::{MeasuredData, Weighting};
 use super::residual::{Evaluation, Evaluator};
 use crate::core::model::Model;
@@ -101,13 +101,6 @@ impl Default for ModeMatchingOptions {
             bounds: None,
         }
     }
-}
-
-/// Which bound a parameter ended at ([`ModeMatchingOptions::bounds`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum AtBound {
-    Lower,
-    Upper,
 }
 
 /// The last (converged) Levenberg–Marquardt step.

@@ -393,8 +393,8 @@ fn a_router_carries_two_structures_under_access_control() {
         .replace("s3nsor-pass", "d4sh-pass");
     std::fs::write(d.join("sensor.json5"), &sensor).unwrap();
     std::fs::write(d.join("dashboard.json5"), &dashboard).unwrap();
-    let structures = "[[structures]]\nname = \"lab-frame\"\nmodel = \"config/models/lab-frame.toml\"\n\n\
-                      [[structures]]\nname = \"cantilever\"\nmodel = \"config/models/cantilever-case1.toml\"\n";
+    let structures = "[[structures]]\nname = \"lab-frame\"\nmodel = \"bundled:lab-frame\"\n\n\
+                      [[structures]]\nname = \"cantilever\"\nmodel = \"bundled:cantilever-case1\"\n";
     let zenoh = format!(
         "config_file = \"{}\"",
         d.join("zenoh-daemon.json5").display()
@@ -692,7 +692,7 @@ fn the_four_bay_frame_is_cross_checked_within_the_memory_budget() {
         String::from_utf8_lossy(&out.stderr)
     );
     let structures = "[[structures]]\nname = \"four-bay-solid\"\n\
-                      model = \"config/models/four-bay-solid.toml\"\n\n\
+                      model = \"bundled:four-bay-solid\"\n\n\
                       [tracker]\ncrosscheck_every_sets = 1\ncrosscheck_every_s = 0.0\n";
     let mut daemon = Daemon::start(&d, "memory_mib = 1024", structures);
     let s = client(&daemon.endpoint);
