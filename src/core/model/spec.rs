@@ -172,7 +172,8 @@ pub struct MassSpec {
 }
 
 /// A discrete spring along one global DOF direction between locations `a` and `b`, or from
-/// `a` to the ground when `b` is absent. Stiffness in N/m (x, y) or N·m/rad (rz).
+/// `a` to the ground when `b` is absent. Stiffness in N/m (translations) or N·m/rad
+/// (rotations).
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SpringSpec {
@@ -399,17 +400,9 @@ pub struct Mass3 {
     pub inertia: [f64; 3],
 }
 
-/// A discrete spring along one global DOF (`x` … `rz`) between locations `a` and `b`, or
-/// from `a` to the ground (an elastic support) when `b` is absent; N/m or N·m/rad.
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Spring3 {
-    pub name: String,
-    pub a: String,
-    pub b: Option<String>,
-    pub dof: String,
-    pub k: f64,
-}
+/// A spring of a space frame: the plane frame's [`SpringSpec`], whose `dof` may also be
+/// `z`, `rx` or `ry` (an elastic support when `b` is absent).
+pub type Spring3 = SpringSpec;
 
 /// `[space_frame]` in a model file.
 #[derive(Debug, Clone, Deserialize)]
