@@ -1,6 +1,6 @@
 //! `update --method bayesian` and `sweep-sigma`: the Bayesian MAP (paper §2.3) from the
 //! command line, its uncertainty, the σ_c study (Figs. 5, 7, 15, 18) and the two-stage use
-//! (§4.2).
+//! (§4.2). What the update writes and prints once solved is in `bayes_output`.
 
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
@@ -9,22 +9,22 @@ use std::time::Instant;
 use anyhow::{Result, bail};
 use indicatif::ProgressBar;
 
+use super::bayes_output::{
+    Solved, Uncertainties, auto_doc, bayes_doc, print_bayes_table, print_summary,
+};
 use super::inputs::{Inputs, measured_data};
 use super::progress::{fmt_theta, iteration_progress, progress_line, spinner};
 use super::{load_model, parse_positive_list, write_json};
-use crate::contract::stiffness::Method;
-use crate::contract::update::{
-    AutoSigmaDoc, BayesBlock, BayesDoc, BayesModeDoc, BayesParameter, BayesTermination, Bound,
-    LCurveDoc, Mapping, NamedTheta, SigmaMisfit, Solver, StageDoc, StageOneDoc, TsvdDoc,
-};
-use crate::contract::{Schema, finite};
+use crate::contract::update::{Mapping, NamedTheta, StageOneDoc};
 use crate::core::model::Model;
 use crate::core::updating::bayesian::{
-    AutoSigma, BayesOptions, BayesProgress, BayesResult, BayesSolver, BayesUpdate,
-    ContinuationStage, Observers, SigmaChoice, SigmaTrial, bayesian_update,
-    stage_one as core_stage_one,
+    BayesOptions, BayesProgress, BayesSolver, BayesUpdate, Observers, SigmaChoice, SigmaTrial,
+    bayesian_update, stage_one as core_stage_one,
 };
-use crate::core::updating::{AtBound, LogBounds};
+use crate::core::updating::{LogBounds, MeasuredData};
+
+// The σ_c continuation as documented, which `sweep-sigma` writes too.
+pub(super) use super::bayes_output::stage_docs;
 
 /// Default prior standard deviation of θ: non-informative, as in the paper (§4.2).
 pub const DEFAULT_PRIOR_STD: f64 = 1000.0;
@@ -148,34 +148,6 @@ fn sigma_reporter(choice: SigmaChoice) -> (Option<ProgressBar>, impl FnMut(Sigma
     (pb, report)
 }
 
-fn auto_doc(auto: &Option<AutoSigma>) -> Option<AutoSigmaDoc> {
-    auto.as_ref().map(|a| AutoSigmaDoc {
-        rule:
-            "smallest σ_c at which e_Mᵀ Σ_M⁻¹ e_M ≤ ν = N_data − N_θ − N_m (discrepancy principle)"
-                .into(),
-        nu: a.target,
-        misfit: a.misfit,
-        met: a.met,
-        trials: a
-            .trials
-            .iter()
-            .map(|&(sigma_c, misfit)| SigmaMisfit { sigma_c, misfit })
-            .collect(),
-    })
-}
-
-/// The σ_c continuation of a Newton solve (one stage when the cold start converged).
-pub(super) fn stage_docs(stages: &[ContinuationStage]) -> Vec<StageDoc> {
-    stages
-        .iter()
-        .map(|s| StageDoc {
-            sigma_c: s.sigma_c,
-            iterations: s.iterations,
-            converged: s.converged,
-        })
-        .collect()
-}
-
 /// Stage I of the two-stage update: its result and the fine θ0 it gives.
 struct StageOneOut {
     doc: StageOneDoc,
@@ -297,7 +269,8 @@ fn solver(s: SolverArg) -> BayesSolver {
     }
 }
 
-/// `update --method bayesian`.
+/// `update --method bayesian`: stage I when asked for, the prior and the choice of σ_c, the
+/// MAP of (14) with its uncertainties, then the document at `out` and the table.
 pub fn run_update(
     b: &BayesUpdateArgs,
     max_iter: Option<usize>,
@@ -321,23 +294,44 @@ pub fn run_update(
         .as_ref()
         .map_or_else(|| inputs.theta0.clone(), |s| s.theta0.clone());
     let (prior_mean, std) = prior(model, &b.prior)?;
-    let sigma = sigma_choice(model, b.sigma_c.as_deref(), &b.sigma_range)?;
-    let (sigma_pb, mut report) = sigma_reporter(sigma);
+    let opts = BayesOptions {
+        solver: solver(b.solver),
+        sigma: sigma_choice(model, b.sigma_c.as_deref(), &b.sigma_range)?,
+        prior_mean,
+        prior_std: std.clone(),
+        max_iterations: max_iter,
+        tsvd: !b.no_tsvd,
+        bounds,
+    };
+    let (update, seconds) = solve_map(model, data, &theta0, &opts, b.solver)?;
+    let uncertainty = uncertainties(model, &update);
+    let at_bound = LogBounds::new(model, bounds).at_bound(&update.result.state.theta);
+    let solved = Solved {
+        update: &update,
+        seconds,
+        uncertainty,
+        at_bound,
+    };
+    let stage1_doc = stage1.as_ref().map(|s| &s.doc);
+    write_json(out, &bayes_doc(inputs, stage1_doc, std, &solved))?;
+    print_bayes_table(model, set, &solved);
+    print_summary(&solved);
+    Ok(())
+}
+
+/// The MAP of (14) by [`bayesian_update`], with a progress bar on stderr for each phase (the
+/// σ_c search, the MAP iterations, the TSVD); the update and its wall-clock seconds.
+fn solve_map(
+    model: &Model,
+    data: &MeasuredData,
+    theta0: &[f64],
+    opts: &BayesOptions,
+    solver_name: SolverArg,
+) -> Result<(BayesUpdate, f64)> {
+    let (sigma_pb, mut report) = sigma_reporter(opts.sigma);
     // One bar per phase: the σ_c search, the MAP iterations, the TSVD.
     let bar: Arc<Mutex<Option<ProgressBar>>> = Arc::default();
-    let shown = bar.clone();
-    let iteration: BayesProgress = Box::new(move |s, k, value, theta| {
-        if let Some(b) = shown.lock().unwrap_or_else(|p| p.into_inner()).as_ref() {
-            progress_line(
-                b,
-                format!(
-                    "stage σ_c = {s:.3e}, iteration {k}: objective {value:.6e}, θ = {}",
-                    fmt_theta(theta)
-                ),
-            );
-        }
-    });
-    let solver_name = b.solver;
+    let iteration = iteration_reporter(bar.clone());
     let mut phase = |p: &'static str| {
         let mut current = bar.lock().unwrap_or_else(|p| p.into_inner());
         if let Some(old) = current.take() {
@@ -352,19 +346,11 @@ pub fn run_update(
         });
     };
     let started = Instant::now();
-    let u = bayesian_update(
+    let update = bayesian_update(
         model,
         data,
-        &theta0,
-        &BayesOptions {
-            solver: solver(b.solver),
-            sigma,
-            prior_mean,
-            prior_std: std.clone(),
-            max_iterations: max_iter,
-            tsvd: !b.no_tsvd,
-            bounds,
-        },
+        theta0,
+        opts,
         Observers {
             sigma_trial: &mut report,
             iteration: Some(iteration),
@@ -381,21 +367,33 @@ pub fn run_update(
     {
         p.finish_and_clear();
     }
-    let BayesUpdate {
-        sigma_c,
-        auto,
-        result: res,
-        misfit_dof,
-        macs,
-        free,
-        tsvd,
-        evaluation: eval,
-        mode_matching: mm,
-    } = u;
-    if let Err(e) = &free {
+    Ok((update, seconds))
+}
+
+/// The reporter of the MAP iterations: a line on the phase's bar in `shown`, if any.
+fn iteration_reporter(shown: Arc<Mutex<Option<ProgressBar>>>) -> BayesProgress {
+    Box::new(move |s, k, value, theta| {
+        if let Some(b) = shown.lock().unwrap_or_else(|p| p.into_inner()).as_ref() {
+            progress_line(
+                b,
+                format!(
+                    "stage σ_c = {s:.3e}, iteration {k}: objective {value:.6e}, θ = {}",
+                    fmt_theta(theta)
+                ),
+            );
+        }
+    })
+}
+
+/// The uncertainties of the MAP: the threshold-free posterior and sampling std of θ and the
+/// posterior std of λ, and the TSVD std of θ (24)–(25); NaN, with a warning on stderr,
+/// where a covariance failed.
+fn uncertainties<'a>(model: &Model, update: &'a BayesUpdate) -> Uncertainties<'a> {
+    let free = &update.free;
+    if let Err(e) = free {
         eprintln!("warning: no threshold-free covariance: {e}");
     }
-    let tsvd = match tsvd {
+    let tsvd = match &update.tsvd {
         Some(Err(e)) => {
             eprintln!("warning: no TSVD covariance: {e}");
             None
@@ -405,198 +403,20 @@ pub fn run_update(
     };
     let p = model.n_params();
     let nan = vec![f64::NAN; p];
-    let (post, samp) = match &free {
+    let (post, samp) = match free {
         Ok(f) => (f.posterior_theta_std(), f.sampling_theta_std()),
         Err(_) => (nan.clone(), nan.clone()),
     };
-    let lambda_std = match &free {
+    let lambda_std = match free {
         Ok(f) => f.posterior_lambda_std(),
-        Err(_) => vec![f64::NAN; res.state.lambda.len()],
+        Err(_) => vec![f64::NAN; update.result.state.lambda.len()],
     };
-    let tsvd_std = tsvd.as_ref().map_or(nan.clone(), |t| t.theta_std());
-    let at_bound = LogBounds::new(model, bounds).at_bound(&res.state.theta);
-    let two_pi = 2.0 * std::f64::consts::PI;
-    let out_doc = BayesDoc {
-        schema: Schema::new(),
-        method: Method::Bayesian,
-        structure: set.structure.clone(),
-        time: set.time.to_rfc3339_opts(chrono::SecondsFormat::AutoSi, true),
-        converged: res.converged,
-        termination: termination(&res),
-        iterations: res.iterations,
-        seconds,
-        solver: match res.solver {
-            BayesSolver::Newton => Solver::Newton,
-            BayesSolver::Alternating => Solver::Alternating,
-        },
-        start: if stage1.is_some() { "stage I" } else { "theta0" }.into(),
-        epsilon: eval.epsilon,
-        n_data: data.n_data(),
-        bayesian: BayesBlock {
-            sigma_c,
-            sigma_c_auto: auto_doc(&auto),
-            prior_std: std,
-            J_p: res.terms.total,
-            measurement_misfit: res.terms.measurement,
-            modelling_error: res.terms.modelling,
-            prior_term: res.terms.prior,
-            misfit_dof,
-            continuation: stage_docs(&res.stages),
-            tsvd: tsvd.as_ref().map(|t| TsvdDoc {
-                s_tol: t.s_tol(),
-                kept: t.curve[t.chosen].kept,
-                of: t.singular_values.len(),
-                condition: t.condition(),
-                corner_rule: "least E (25): where E stops falling as singular values are added; points with a negative variance excluded".into(),
-                l_curve: t
-                    .curve
-                    .iter()
-                    .map(|c| LCurveDoc {
-                        s_tol: c.s_tol,
-                        E: c.error,
-                        norm: c.norm,
-                        negative_variance: c.negative_variance,
-                    })
-                    .collect(),
-            }),
-        },
-        stage1: stage1.as_ref().map(|s| s.doc.clone()),
-        parameters: model
-            .parameters()
-            .iter()
-            .enumerate()
-            .map(|(l, par)| BayesParameter {
-                name: par.name.clone(),
-                theta: res.state.theta[l],
-                std: finite(post[l]),
-                sampling_std: finite(samp[l]),
-                tsvd_std: finite(tsvd_std[l]),
-                mode_matching_theta: mm.as_ref().map(|r| r.theta[l]),
-                at_bound: at_bound[l].map(|b| match b {
-                    AtBound::Upper => Bound::Upper,
-                    AtBound::Lower => Bound::Lower,
-                }),
-            })
-            .collect(),
-        modes: set
-            .modes
-            .iter()
-            .enumerate()
-            .map(|(m, mode)| BayesModeDoc {
-                measured_hz: mode.frequency_hz,
-                most_probable_lambda: res.state.lambda[m],
-                most_probable_lambda_std: finite(lambda_std[m]),
-                most_probable_hz: res.state.lambda[m].max(0.0).sqrt() / two_pi,
-                mac_most_probable_to_measured: macs[m],
-                model_hz: eval.model_hz(m),
-                model_mac: finite(eval.mac[m]),
-            })
-            .collect(),
-    };
-    write_json(out, &out_doc)?;
-    print_bayes_table(
-        model,
-        set,
-        &res,
-        &eval,
-        &macs,
-        (&post, &samp, &tsvd_std, &at_bound),
-        mm.as_ref(),
-    );
-    println!(
-        "σ_c = {sigma_c:.4e}{}; {:?} solver: {} after {} iterations in {seconds:.2} s",
-        if auto.is_some() { " (automatic)" } else { "" },
-        res.solver,
-        match termination(&res) {
-            BayesTermination::Converged => "converged",
-            BayesTermination::Boundary =>
-                "NOT converged (stopped against θ > 0 or λ > 0: no interior minimum)",
-            BayesTermination::MaxIterations => "NOT converged",
-        },
-        res.iterations
-    );
-    println!(
-        "J_p = {:.6e}: e_Mᵀ Σ_M⁻¹ e_M = {:.4e} (ν = {}), e_Cᵀe_C = {:.4e}, prior {:.3e}; ε(θ_MAP) = {:.4e}",
-        res.terms.total,
-        res.terms.measurement,
-        misfit_dof,
-        res.terms.modelling,
-        res.terms.prior,
-        eval.epsilon
-    );
-    if let Some(t) = &tsvd {
-        println!(
-            "TSVD: cond(H) = {:.2e}, s_tol = {:.4e} (L-curve corner, {} of {} kept)",
-            t.condition(),
-            t.s_tol(),
-            t.curve[t.chosen].kept,
-            t.singular_values.len()
-        );
-    }
-    Ok(())
-}
-
-/// Per parameter: posterior, sampling and TSVD std, and the bound it is on.
-type ParameterColumns<'a> = (&'a [f64], &'a [f64], &'a [f64], &'a [Option<AtBound>]);
-
-fn print_bayes_table(
-    model: &Model,
-    set: &crate::contract::modal_set::ModalSet,
-    res: &BayesResult,
-    eval: &crate::core::updating::Evaluation,
-    macs: &[f64],
-    (post, samp, tsvd, at_bound): ParameterColumns<'_>,
-    mm: Option<&crate::core::updating::ModeMatchingResult>,
-) {
-    println!(
-        "{:<12} {:>11} {:>11} {:>11} {:>11} {:>11}",
-        "parameter", "θ MAP", "σ post.", "σ sampling", "σ TSVD", "θ mode m."
-    );
-    for (l, p) in model.parameters().iter().enumerate() {
-        let note = match at_bound[l] {
-            Some(AtBound::Upper) => "  at its upper bound",
-            Some(AtBound::Lower) => "  at its lower bound",
-            None => "",
-        };
-        println!(
-            "{:<12} {:>11.5} {:>11.5} {:>11.5} {:>11.3e} {:>11}{note}",
-            p.name,
-            res.state.theta[l],
-            post[l],
-            samp[l],
-            tsvd[l],
-            mm.map_or("-".into(), |r| format!("{:.5}", r.theta[l]))
-        );
-    }
-    println!();
-    println!(
-        "{:>4} {:>12} {:>14} {:>12} {:>9} {:>9}",
-        "mode", "measured Hz", "most prob. Hz", "model Hz", "MAC m.p.", "MAC model"
-    );
-    let two_pi = 2.0 * std::f64::consts::PI;
-    for (m, mode) in set.modes.iter().enumerate() {
-        println!(
-            "{:>4} {:>12.3} {:>14.3} {:>12.3} {:>9.4} {:>9.4}",
-            m + 1,
-            mode.frequency_hz,
-            res.state.lambda[m].max(0.0).sqrt() / two_pi,
-            eval.model_hz(m),
-            macs[m],
-            eval.mac[m]
-        );
-    }
-    println!();
-}
-
-/// The `termination` of `boltwatch.update.v1` for a MAP solve: `converged`, `boundary` (no
-/// step lowers J_p and the Hessian is not positive definite there: the minimum lies outside
-/// θ > 0, λ > 0, or at a saddle) or `max_iterations`.
-fn termination(res: &BayesResult) -> BayesTermination {
-    if res.converged {
-        BayesTermination::Converged
-    } else if res.stuck {
-        BayesTermination::Boundary
-    } else {
-        BayesTermination::MaxIterations
+    let tsvd_std = tsvd.map_or(nan.clone(), |t| t.theta_std());
+    Uncertainties {
+        theta_std: post,
+        theta_sampling_std: samp,
+        lambda_std,
+        theta_tsvd_std: tsvd_std,
+        tsvd,
     }
 }

@@ -1,6 +1,7 @@
 //! The command-line commands (DESIGN §2): file I/O and tables around the pure core.
 
 pub mod bayes;
+mod bayes_output;
 pub mod diagnose;
 pub mod export;
 pub mod identify;

@@ -14,31 +14,31 @@
 //! `OUT.part` into a fresh file, ending chunks at the same sync points (so the bytes equal
 //! those of an uninterrupted run), and goes on from the next input: nothing is lost or
 //! written twice, wherever the process was killed.
+//!
+//! The output file, its checkpoints and `--resume` are in the submodule `output`.
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, mpsc};
+use std::sync::Arc;
 use std::time::Instant;
 
-use anyhow::{Context, Result, anyhow, bail};
-use serde::{Deserialize, Serialize};
-use serde_json::{Value, json};
+use anyhow::{Result, bail};
 
-use super::checkpoint;
-use super::driver::{CrosscheckLane, OffPath, Pace, Sink, dispatch};
+use super::driver::{CrosscheckLane, OffPath, Pace, StructureModel, dispatch};
 use super::mcap::{
-    ChannelSpec, McapWriter, RecordedMessage, for_each_message, from_ns, read_tolerant, to_ns,
-    topic,
+    ChannelSpec, McapWriter, RecordedMessage, for_each_message, from_ns, to_ns, topic,
 };
-use super::model::load_structure;
+use super::model::{adopt_law, load_structure};
 use crate::contract::modal_set::{ModalSet, Rejection};
-use crate::contract::{Alert, Checkpoint, Estimate, Output};
+use crate::contract::{Alert, Estimate, Output};
 use crate::pipeline::accel::{AccelFront, FrontEvent, IdentifySettings};
-use crate::pipeline::{Action, Tracker, TrackerConfig, TrackerState};
+use crate::pipeline::{Action, Tracker, TrackerState};
 use crate::settings::Settings;
 
-/// Schema of the replay checkpoint file.
-pub const REPLAY_CHECKPOINT_SCHEMA: &str = "boltwatch.replay_checkpoint.v1";
+mod output;
+
+pub use output::REPLAY_CHECKPOINT_SCHEMA;
+use output::{Checkpoints, OutputFile, Resumed};
 
 /// What to replay, where to.
 #[derive(Debug, Clone)]
@@ -103,7 +103,33 @@ pub struct Counters {
     pub cold_starts: u64,
 }
 
+impl Counters {
+    /// The counters in a tracker's state.
+    fn of(st: &TrackerState) -> Self {
+        Self {
+            accepted: st.accepted,
+            rejected: st.rejected,
+            unconverged: st.unconverged,
+            cold_starts: st.cold_starts,
+        }
+    }
+}
+
 impl ReplaySummary {
+    /// The summary of a replay of `inputs`, before any is processed.
+    fn for_inputs(inputs: &[(String, Input)], skipped_topics: BTreeMap<String, u64>) -> Self {
+        let readings = inputs
+            .iter()
+            .filter(|(_, i)| matches!(i, Input::Environment(_)))
+            .count();
+        Self {
+            sets: inputs.len() - readings,
+            readings,
+            skipped_topics,
+            ..Default::default()
+        }
+    }
+
     /// Notes a message read back from a file.
     fn note_recorded(&mut self, m: &RecordedMessage) {
         let suffix = m.topic.rsplit('/').next().unwrap_or_default();
@@ -125,168 +151,6 @@ impl ReplaySummary {
             Output::Modal(_) => self.windows += 1,
         }
     }
-}
-
-/// The output file with the summary kept alongside. Outputs are encoded and written on
-/// a thread of their own ([`Writer`]), so that work (on the lab frame ~70 µs a set, the
-/// estimate's 8 KB of JSON and its compression) overlaps the tracking of the next set.
-struct OutputFile {
-    writer: Writer,
-    /// Outputs handed to the writer (all of them written once it has synced).
-    written: u64,
-    syncs: Vec<u64>,
-    summary: ReplaySummary,
-}
-
-impl Sink for OutputFile {
-    fn emit(&mut self, output: &Output, bytes: &[u8]) -> Result<()> {
-        self.writer.send(WriterJob::Encoded {
-            topic: topic(output.structure(), output.topic()),
-            time: to_ns(output.time())?,
-            bytes: bytes.to_vec(),
-        })?;
-        self.summary.note(output);
-        self.written += 1;
-        Ok(())
-    }
-
-    fn emit_owned(&mut self, output: Output) -> Result<()> {
-        self.summary.note(&output);
-        self.writer.send(WriterJob::Output(output))?;
-        self.written += 1;
-        Ok(())
-    }
-}
-
-impl OutputFile {
-    /// Waits until everything handed over is written and synced.
-    fn sync(&mut self) -> Result<()> {
-        let (tx, rx) = mpsc::channel();
-        self.writer.send(WriterJob::Sync(tx))?;
-        match rx.recv() {
-            Ok(r) => r?,
-            Err(_) => return Err(self.writer.failure()),
-        }
-        if self.syncs.last() != Some(&self.written) {
-            self.syncs.push(self.written);
-        }
-        Ok(())
-    }
-}
-
-/// Work for the [`Writer`] thread.
-enum WriterJob {
-    Output(Output),
-    Encoded {
-        topic: String,
-        time: u64,
-        bytes: Vec<u8>,
-    },
-    Sync(mpsc::Sender<Result<()>>),
-}
-
-/// Outputs waiting for the writer thread at most (then the tracking waits).
-const WRITER_QUEUE: usize = 256;
-
-/// The thread that owns the output [`McapWriter`].
-struct Writer {
-    jobs: Option<mpsc::SyncSender<WriterJob>>,
-    thread: Option<std::thread::JoinHandle<Result<McapWriter>>>,
-}
-
-impl Writer {
-    fn start(mut w: McapWriter) -> Result<Self> {
-        let (tx, rx) = mpsc::sync_channel::<WriterJob>(WRITER_QUEUE);
-        let thread = std::thread::Builder::new()
-            .name("replay-writer".into())
-            .spawn(move || -> Result<McapWriter> {
-                for job in rx {
-                    match job {
-                        WriterJob::Output(o) => w.write(
-                            &topic(o.structure(), o.topic()),
-                            to_ns(o.time())?,
-                            &o.to_wire(),
-                        )?,
-                        WriterJob::Encoded { topic, time, bytes } => {
-                            w.write(&topic, time, &bytes)?
-                        }
-                        WriterJob::Sync(reply) => {
-                            let r = w.sync();
-                            let failed = r.is_err();
-                            let _ = reply.send(r);
-                            if failed {
-                                bail!("the output file could not be synced");
-                            }
-                        }
-                    }
-                }
-                Ok(w)
-            })
-            .context("cannot start the output writer thread")?;
-        Ok(Self {
-            jobs: Some(tx),
-            thread: Some(thread),
-        })
-    }
-
-    fn send(&mut self, job: WriterJob) -> Result<()> {
-        let jobs = self
-            .jobs
-            .as_ref()
-            .ok_or_else(|| anyhow!("the output writer has stopped"))?;
-        match jobs.send(job) {
-            Ok(()) => Ok(()),
-            Err(_) => Err(self.failure()),
-        }
-    }
-
-    /// The error that stopped the writer thread.
-    fn failure(&mut self) -> anyhow::Error {
-        self.jobs.take();
-        match self.thread.take().map(|t| t.join()) {
-            Some(Ok(Err(e))) => e.context("writing the output file"),
-            Some(Ok(Ok(_))) => anyhow!("the output writer stopped"),
-            Some(Err(_)) => anyhow!("the output writer thread panicked"),
-            None => anyhow!("the output writer has stopped"),
-        }
-    }
-
-    /// Waits for everything handed over and returns the file's writer.
-    fn finish(mut self) -> Result<McapWriter> {
-        self.jobs.take();
-        match self.thread.take().map(|t| t.join()) {
-            Some(Ok(r)) => r.context("writing the output file"),
-            Some(Err(_)) => bail!("the output writer thread panicked"),
-            None => bail!("the output writer has stopped"),
-        }
-    }
-}
-
-/// The replay's checkpoint file: where to go on from, and every tracker's checkpoint.
-#[derive(Debug, Serialize, Deserialize)]
-struct ReplayCheckpoint {
-    schema: String,
-    recording: PathBuf,
-    recording_bytes: u64,
-    recording_sets: usize,
-    /// [`fingerprint`] of the settings.
-    settings: Value,
-    next_input: usize,
-    outputs_written: u64,
-    /// Output counts at which the file was synced (chunk ends).
-    syncs: Vec<u64>,
-    complete: bool,
-    trackers: BTreeMap<String, Checkpoint<TrackerState>>,
-}
-
-/// The part of the settings a checkpoint must match to be resumed.
-fn fingerprint(settings: &Settings) -> Value {
-    json!({
-        "structures": settings.structures.iter().map(|s| json!({"name": s.name, "model": s.model})).collect::<Vec<_>>(),
-        "tracker": settings.tracker,
-        "crosscheck": settings.crosscheck,
-        "identify": settings.identify,
-    })
 }
 
 /// One input of a replay, for one structure.
@@ -331,6 +195,35 @@ enum Source {
 /// first sample), and the topics not read with their message counts.
 pub type Inputs = (Vec<(String, Input)>, BTreeMap<String, u64>);
 
+/// The input of structure `s` that an [`AccelFront`] event makes: an identified modal set,
+/// or a refusal at `log_time` (of the accel block `payload`, or of a window left unfinished).
+fn front_input(s: &str, log_time: u64, e: FrontEvent, payload: &[u8]) -> (String, Input) {
+    match e {
+        FrontEvent::Set(set) => (s.to_string(), Input::Identified(set)),
+        FrontEvent::Dropped(rejection) => (
+            s.to_string(),
+            Input::Refused {
+                log_time,
+                rejection,
+                head: Vec::new(),
+                size: 0,
+                digest: crate::contract::digest(&[]),
+            },
+        ),
+        FrontEvent::Refused(rejection) => (
+            s.to_string(),
+            Input::Refused {
+                log_time,
+                rejection,
+                head: payload[..payload.len().min(crate::contract::REJECTED_PAYLOAD_LIMIT)]
+                    .to_vec(),
+                size: payload.len(),
+                digest: crate::contract::digest(payload),
+            },
+        ),
+    }
+}
+
 /// The inputs of the watched structures in `path`: modal sets as recorded, and accel blocks
 /// streamed through one [`AccelFront`] per structure (windows identified as the file is
 /// read, so only one window of raw data per structure is held; the samples left over at
@@ -354,30 +247,6 @@ pub fn read_inputs(
     let mut skipped = BTreeMap::new();
     let mut blocks = 0usize;
     let started = Instant::now();
-    let take = |s: &str, log_time: u64, e: FrontEvent, payload: &[u8]| match e {
-        FrontEvent::Set(set) => (s.to_string(), Input::Identified(set)),
-        FrontEvent::Dropped(rejection) => (
-            s.to_string(),
-            Input::Refused {
-                log_time,
-                rejection,
-                head: Vec::new(),
-                size: 0,
-                digest: crate::contract::digest(&[]),
-            },
-        ),
-        FrontEvent::Refused(rejection) => (
-            s.to_string(),
-            Input::Refused {
-                log_time,
-                rejection,
-                head: payload[..payload.len().min(crate::contract::REJECTED_PAYLOAD_LIMIT)]
-                    .to_vec(),
-                size: payload.len(),
-                digest: crate::contract::digest(payload),
-            },
-        ),
-    };
     for_each_message(path, |m| {
         match wanted.get(&m.topic) {
             Some(&(s, Source::Modal)) => inputs.push((s.to_string(), Input::Recorded(m))),
@@ -392,7 +261,7 @@ pub fn read_inputs(
                 });
                 *last = m.log_time;
                 for e in front.handle(&m.data) {
-                    inputs.push(take(s, m.log_time, e, &m.data));
+                    inputs.push(front_input(s, m.log_time, e, &m.data));
                 }
             }
             None => *skipped.entry(m.topic).or_insert(0) += 1,
@@ -401,7 +270,7 @@ pub fn read_inputs(
     })?;
     for (s, (front, last)) in &mut fronts {
         if let Some(e) = front.finish() {
-            inputs.push(take(s, *last, e, &[]));
+            inputs.push(front_input(s, *last, e, &[]));
         }
     }
     if blocks > 0 {
@@ -425,12 +294,62 @@ pub fn read_inputs(
     Ok((keyed.into_iter().map(|(_, i)| i).collect(), skipped))
 }
 
+/// A recording opened for replay.
+struct Recording {
+    /// The watched structures' models, by name.
+    models: HashMap<String, StructureModel>,
+    /// The inputs, in log-time order ([`read_inputs`]).
+    inputs: Vec<(String, Input)>,
+    /// The recording's size in bytes.
+    bytes: u64,
+    /// The output file's channels ([`output_channels`]).
+    channels: Vec<ChannelSpec>,
+}
+
+/// Where a replay starts from: the next input, the trackers, and the output file so far
+/// (synced at `syncs`).
+struct Start {
+    next: usize,
+    trackers: BTreeMap<String, Tracker>,
+    writer: McapWriter,
+    syncs: Vec<u64>,
+}
+
+/// A replay under way: the off-path lane, the output file, and a tracker per structure.
+struct Run {
+    lane: OffPath,
+    out: OutputFile,
+    trackers: BTreeMap<String, Tracker>,
+}
+
 /// Replays `opts.recording` (module docs); `progress(done, total)` after every input.
-pub fn replay(
-    opts: &ReplayOptions,
-    mut progress: impl FnMut(usize, usize),
-) -> Result<ReplaySummary> {
+pub fn replay(opts: &ReplayOptions, progress: impl FnMut(usize, usize)) -> Result<ReplaySummary> {
     let started = Instant::now();
+    let (recording, skipped) = open_recording(opts)?;
+    let checkpoints = Checkpoints::new(opts, &recording);
+    let previous = checkpoints.previous()?;
+    let mut summary = ReplaySummary::for_inputs(&recording.inputs, skipped);
+    let start = match previous {
+        Some(c) => match checkpoints.resume(c, &recording, &mut summary)? {
+            Resumed::Complete => {
+                summary.seconds = started.elapsed().as_secs_f64();
+                return Ok(summary);
+            }
+            Resumed::From(start) => *start,
+        },
+        None => start_afresh(opts, &recording)?,
+    };
+    let Recording { models, inputs, .. } = recording;
+    let next = start.next;
+    let mut run = Run::start(start, summary, models, &opts.settings)?;
+    feed(&mut run, &inputs, next, &checkpoints, progress)?;
+    finish(opts, run, &checkpoints, started)
+}
+
+/// Opens `opts.recording`: loads the watched structures' models, reads their inputs (an
+/// error if there are none) and lays out the output file's channels. Returns it with the
+/// topics not read and their message counts.
+fn open_recording(opts: &ReplayOptions) -> Result<(Recording, BTreeMap<String, u64>)> {
     let settings = &opts.settings;
     let names: Vec<&str> = settings
         .structures
@@ -441,8 +360,8 @@ pub fn replay(
     for s in &settings.structures {
         models.insert(s.name.clone(), Arc::new(load_structure(s)?));
     }
-    let (sets, skipped) = read_inputs(&opts.recording, &models, &settings.identify)?;
-    if sets.is_empty() {
+    let (inputs, skipped) = read_inputs(&opts.recording, &models, &settings.identify)?;
+    if inputs.is_empty() {
         bail!(
             "recording {} has no modal sets or accel blocks of the watched structures ({}); its topics: {}",
             opts.recording.display(),
@@ -458,16 +377,28 @@ pub fn replay(
             }
         );
     }
-    let recording_bytes = std::fs::metadata(&opts.recording)?.len();
+    let bytes = std::fs::metadata(&opts.recording)?.len();
     tracing::info!(
-        sets = sets.len(),
+        sets = inputs.len(),
         structures = names.join(","),
         "replaying {} into {}",
         opts.recording.display(),
         opts.out.display()
     );
-    // The identified modal sets go out on `modal` when the recording has raw data.
-    let raw = sets
+    let channels = output_channels(settings, &inputs)?;
+    let recording = Recording {
+        models,
+        inputs,
+        bytes,
+        channels,
+    };
+    Ok((recording, skipped))
+}
+
+/// The output file's channels: each watched structure's output topics, and `modal` when
+/// the recording has raw data (the modal sets identified from it go out there).
+fn output_channels(settings: &Settings, inputs: &[(String, Input)]) -> Result<Vec<ChannelSpec>> {
+    let raw = inputs
         .iter()
         .any(|(_, i)| !matches!(i, Input::Recorded(_) | Input::Environment(_)));
     let mut channels = Vec::new();
@@ -479,235 +410,146 @@ pub fn replay(
             channels.push(ChannelSpec::for_structure(&s.name, "modal")?);
         }
     }
-    let tracker_cfg: TrackerConfig = settings.tracker.clone();
-    let fp = fingerprint(settings);
-    let part = opts.part();
+    Ok(channels)
+}
 
-    let previous: Option<ReplayCheckpoint> = if opts.resume {
-        checkpoint::read(&opts.checkpoint)?
-    } else {
-        None
-    };
-    let mut trackers: BTreeMap<String, Tracker> = BTreeMap::new();
-    let readings = sets
-        .iter()
-        .filter(|(_, i)| matches!(i, Input::Environment(_)))
-        .count();
-    let mut summary = ReplaySummary {
-        sets: sets.len() - readings,
-        readings,
-        skipped_topics: skipped,
-        ..Default::default()
-    };
-    let (start, w, syncs) = match previous {
-        Some(c) => {
-            let ctx = |what: &str| format!("checkpoint {}: {what}", opts.checkpoint.display());
-            if c.schema != REPLAY_CHECKPOINT_SCHEMA {
-                bail!(ctx(&format!(
-                    "schema is {}, expected {REPLAY_CHECKPOINT_SCHEMA}",
-                    c.schema
-                )));
-            }
-            if c.recording_bytes != recording_bytes || c.recording_sets != sets.len() {
-                bail!(ctx(&format!(
-                    "written for a recording of {} bytes and {} sets, {} has {recording_bytes} bytes and {} sets",
-                    c.recording_bytes,
-                    c.recording_sets,
-                    opts.recording.display(),
-                    sets.len()
-                )));
-            }
-            if c.settings != fp {
-                bail!(ctx(
-                    "written with a different configuration (structures, tracker or crosscheck); replay without --resume"
-                ));
-            }
-            if c.complete {
-                if !opts.out.exists() && part.exists() {
-                    std::fs::rename(&part, &opts.out).with_context(|| {
-                        format!("cannot move {} to {}", part.display(), opts.out.display())
-                    })?;
-                }
-                let mut s = summary;
-                s.already_complete = true;
-                let all = super::mcap::read_all(&opts.out)?;
-                s.outputs = all.len() as u64;
-                for m in &all {
-                    s.note_recorded(m);
-                }
-                s.seconds = started.elapsed().as_secs_f64();
-                return Ok(s);
-            }
-            let (next, written, syncs) = (c.next_input, c.outputs_written, c.syncs);
-            let mut states = c.trackers;
-            for (name, model) in &models {
-                let state = states
-                    .remove(name)
-                    .ok_or_else(|| anyhow!(ctx(&format!("no tracker of {name}"))))?;
-                let mut t = Tracker::restore(model.1.clone(), tracker_cfg.clone(), state)
-                    .with_context(|| ctx(&format!("tracker of {name}")))?;
-                crate::io::model::adopt_law(&mut t)?;
-                trackers.insert(name.clone(), t);
-            }
-            if !part.exists() {
-                bail!(
-                    "{} is missing, so the outputs the checkpoint {} counts are gone: replay without --resume",
-                    part.display(),
-                    opts.checkpoint.display()
-                );
-            }
-            let (kept, stop) = read_tolerant(&part)?;
-            if (kept.len() as u64) < written {
-                bail!(
-                    "{} holds {} readable messages but the checkpoint counts {written}{}: cannot resume; replay without --resume",
-                    part.display(),
-                    kept.len(),
-                    stop.map(|s| format!(" (reading stopped: {s})"))
-                        .unwrap_or_default()
-                );
-            }
-            let fresh = with_suffix(&part, ".new");
-            let mut w = McapWriter::create(&fresh, &channels)?;
-            for (i, m) in kept.iter().take(written as usize).enumerate() {
-                w.copy(m)?;
-                summary.note_recorded(m);
-                if syncs.binary_search(&(i as u64 + 1)).is_ok() {
-                    w.sync()?;
-                }
-            }
-            w.sync()?;
-            std::fs::rename(&fresh, &part).with_context(|| {
-                format!("cannot move {} to {}", fresh.display(), part.display())
-            })?;
-            tracing::info!(
-                next,
-                outputs = written,
-                "resumed from checkpoint {}",
-                opts.checkpoint.display()
-            );
-            summary.resumed_from = Some(next);
-            (next, w, syncs)
-        }
-        None => {
-            if opts.resume {
-                tracing::info!(
-                    "no checkpoint at {}: replaying from the start",
-                    opts.checkpoint.display()
-                );
-            }
-            for (name, model) in &models {
-                let mut t = Tracker::new(model.1.clone(), tracker_cfg.clone())?;
-                crate::io::model::adopt_law(&mut t)?;
-                trackers.insert(name.clone(), t);
-            }
-            (0, McapWriter::create(&part, &channels)?, Vec::new())
-        }
-    };
-    let mut out = OutputFile {
-        written: w.written(),
-        writer: Writer::start(w)?,
-        syncs,
-        summary,
-    };
-    let mut lane = OffPath::start(
-        "replay-offpath",
-        models,
-        CrosscheckLane {
-            cfg: settings.crosscheck.clone(),
-            budget: None,
-        },
-        tracker_cfg.shape_weight,
-    )?;
+/// A start from the first input, with no checkpoint: new trackers, an empty `OUT.part`.
+fn start_afresh(opts: &ReplayOptions, recording: &Recording) -> Result<Start> {
+    if opts.resume {
+        tracing::info!(
+            "no checkpoint at {}: replaying from the start",
+            opts.checkpoint.display()
+        );
+    }
+    let mut trackers = BTreeMap::new();
+    for (name, model) in &recording.models {
+        let mut t = Tracker::new(model.1.clone(), opts.settings.tracker.clone())?;
+        adopt_law(&mut t)?;
+        trackers.insert(name.clone(), t);
+    }
+    Ok(Start {
+        next: 0,
+        trackers,
+        writer: McapWriter::create(&opts.part(), &recording.channels)?,
+        syncs: Vec::new(),
+    })
+}
 
-    let write_checkpoint = |written: u64,
-                            syncs: &[u64],
-                            trackers: &BTreeMap<String, Tracker>,
-                            next: usize,
-                            complete: bool|
-     -> Result<()> {
-        checkpoint::write_atomic(
-            &opts.checkpoint,
-            &ReplayCheckpoint {
-                schema: REPLAY_CHECKPOINT_SCHEMA.into(),
-                recording: opts.recording.clone(),
-                recording_bytes,
-                recording_sets: sets.len(),
-                settings: fp.clone(),
-                next_input: next,
-                outputs_written: written,
-                syncs: syncs.to_vec(),
-                complete,
-                trackers: trackers
-                    .iter()
-                    .map(|(n, t)| (n.clone(), t.checkpoint()))
-                    .collect(),
+impl Run {
+    /// Starts the writer thread on the output file so far (`start`), and the off-path lane
+    /// for `models`.
+    fn start(
+        start: Start,
+        summary: ReplaySummary,
+        models: HashMap<String, StructureModel>,
+        settings: &Settings,
+    ) -> Result<Self> {
+        let Start {
+            trackers,
+            writer,
+            syncs,
+            ..
+        } = start;
+        let out = OutputFile::start(writer, syncs, summary)?;
+        let lane = OffPath::start(
+            "replay-offpath",
+            models,
+            CrosscheckLane {
+                cfg: settings.crosscheck.clone(),
+                budget: None,
             },
-        )
-    };
+            settings.tracker.shape_weight,
+        )?;
+        Ok(Self {
+            lane,
+            out,
+            trackers,
+        })
+    }
+}
 
-    for (k, (structure, input)) in sets.iter().enumerate().skip(start) {
-        let tracker = trackers
+/// Feeds the inputs from `next` on, in log-time order, through the shared driver
+/// ([`dispatch`]); where a tracker asks for a checkpoint, waits for the off-path lane and
+/// checkpoints the run. `progress(done, total)` after every input.
+fn feed(
+    run: &mut Run,
+    inputs: &[(String, Input)],
+    next: usize,
+    checkpoints: &Checkpoints,
+    mut progress: impl FnMut(usize, usize),
+) -> Result<()> {
+    for (k, (structure, input)) in inputs.iter().enumerate().skip(next) {
+        let tracker = run
+            .trackers
             .get_mut(structure)
             .expect("a tracker per watched structure");
-        let actions = match input {
-            Input::Recorded(msg) => tracker.handle(from_ns(msg.log_time), &msg.data),
-            Input::Environment(msg) => tracker.handle_environment(from_ns(msg.log_time), &msg.data),
-            Input::Identified(set) => {
-                let bytes = serde_json::to_vec(&set.to_json())?;
-                let mut a = vec![Action::Publish(Output::Modal(set.clone()))];
-                a.extend(tracker.handle(set.time, &bytes));
-                a
-            }
-            Input::Refused {
-                log_time,
-                rejection,
-                head,
-                size,
-                digest,
-            } => vec![Action::Publish(tracker.refuse(
-                from_ns(*log_time),
-                rejection,
-                head,
-                *size,
-                *digest,
-            ))],
-        };
-        let d = dispatch(structure, actions, &mut lane, &mut out, Pace::Deterministic)?;
+        let actions = track(tracker, input)?;
+        let d = dispatch(
+            structure,
+            actions,
+            &mut run.lane,
+            &mut run.out,
+            Pace::Deterministic,
+        )?;
         if d.checkpoint_due {
-            lane.drain(&mut out)?;
-            out.sync()?;
-            write_checkpoint(out.written, &out.syncs, &trackers, k + 1, false)?;
+            run.lane.drain(&mut run.out)?;
+            checkpoints.save(&mut run.out, &run.trackers, k + 1)?;
         }
-        out.summary.processed += 1;
-        progress(k + 1, sets.len());
+        run.out.summary.processed += 1;
+        progress(k + 1, inputs.len());
     }
-    lane.drain(&mut out)?;
+    Ok(())
+}
+
+/// What `tracker` makes of one input. A modal set identified from raw data is published
+/// (on `modal`) before it is tracked; a refused accel block or window is published as
+/// rejected.
+fn track(tracker: &mut Tracker, input: &Input) -> Result<Vec<Action>> {
+    Ok(match input {
+        Input::Recorded(msg) => tracker.handle(from_ns(msg.log_time), &msg.data),
+        Input::Environment(msg) => tracker.handle_environment(from_ns(msg.log_time), &msg.data),
+        Input::Identified(set) => {
+            let bytes = serde_json::to_vec(&set.to_json())?;
+            let mut a = vec![Action::Publish(Output::Modal(set.clone()))];
+            a.extend(tracker.handle(set.time, &bytes));
+            a
+        }
+        Input::Refused {
+            log_time,
+            rejection,
+            head,
+            size,
+            digest,
+        } => vec![Action::Publish(tracker.refuse(
+            from_ns(*log_time),
+            rejection,
+            head,
+            *size,
+            *digest,
+        ))],
+    })
+}
+
+/// Ends the run: waits for the off-path jobs, finishes the output (the final checkpoint,
+/// then `OUT`), and completes the summary with the trackers' counters.
+fn finish(
+    opts: &ReplayOptions,
+    mut run: Run,
+    checkpoints: &Checkpoints,
+    started: Instant,
+) -> Result<ReplaySummary> {
+    run.lane.drain(&mut run.out)?;
+    let Run {
+        lane,
+        out,
+        trackers,
+    } = run;
     drop(lane);
-    let OutputFile {
-        writer,
-        syncs,
-        mut summary,
-        ..
-    } = out;
-    let w = writer.finish()?;
-    summary.outputs = w.written();
-    w.finish()?;
-    // The final checkpoint is written before the rename; a resume that finds it complete
-    // with the rename not done does the rename.
-    write_checkpoint(summary.outputs, &syncs, &trackers, sets.len(), true)?;
-    std::fs::rename(&part, &opts.out)
-        .with_context(|| format!("cannot move {} to {}", part.display(), opts.out.display()))?;
+    let mut summary = out.finish(&trackers, checkpoints)?;
     for (name, t) in &trackers {
-        let st = t.state();
-        summary.counters.insert(
-            name.clone(),
-            Counters {
-                accepted: st.accepted,
-                rejected: st.rejected,
-                unconverged: st.unconverged,
-                cold_starts: st.cold_starts,
-            },
-        );
+        summary
+            .counters
+            .insert(name.clone(), Counters::of(t.state()));
     }
     summary.seconds = started.elapsed().as_secs_f64();
     tracing::info!(

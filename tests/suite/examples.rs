@@ -97,7 +97,11 @@ fn pages() -> Vec<PathBuf> {
 
 /// A fresh working folder for one page, laid out like the repository root.
 fn workdir(page: &Path) -> PathBuf {
-    let rel = page.strip_prefix(ROOT).unwrap().to_string_lossy().replace('/', "-");
+    let rel = page
+        .strip_prefix(ROOT)
+        .unwrap()
+        .to_string_lossy()
+        .replace('/', "-");
     let dir = std::env::temp_dir().join(format!("bw-examples-{}-{rel}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
@@ -110,7 +114,11 @@ fn workdir(page: &Path) -> PathBuf {
 /// A shell in `dir` with `boltwatch` first on the `PATH`.
 fn shell(dir: &Path, script: &str) -> Command {
     let bin = Path::new(env!("CARGO_BIN_EXE_boltwatch")).parent().unwrap();
-    let path = format!("{}:{}", bin.display(), std::env::var("PATH").unwrap_or_default());
+    let path = format!(
+        "{}:{}",
+        bin.display(),
+        std::env::var("PATH").unwrap_or_default()
+    );
     let mut cmd = Command::new("bash");
     cmd.args(["-euo", "pipefail", "-c", script])
         .current_dir(dir)
@@ -225,7 +233,9 @@ fn run_page(page: &Path) -> (usize, usize) {
         let where_ = format!("{name}:{}", b.line);
         let marker = b.marker.as_deref().unwrap_or("");
         if b.lang == "text" && marker == "output" {
-            let stdout = last_stdout.as_deref().expect("an output block follows an example");
+            let stdout = last_stdout
+                .as_deref()
+                .expect("an output block follows an example");
             check_output(&b.text, stdout, &where_);
             continue;
         }
@@ -279,7 +289,10 @@ fn every_shell_example_in_the_readme_and_the_guide_runs() {
         skipped += s;
     }
     eprintln!("{ran} examples run, {skipped} marked not run");
-    assert!(ran >= 40, "only {ran} examples found: is the page layout still read?");
+    assert!(
+        ran >= 40,
+        "only {ran} examples found: is the page layout still read?"
+    );
 }
 
 #[test]

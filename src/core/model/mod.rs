@@ -15,6 +15,7 @@ pub mod hex20;
 pub mod import;
 pub mod mesh;
 pub mod solid;
+mod solid_element;
 pub mod space;
 pub mod sparse;
 pub mod spec;

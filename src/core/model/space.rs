@@ -26,9 +26,11 @@
 //! axes (`<connection>.<torsion|weak|strong>`, the connection named `<member>@<node>`
 //! unless it has a `name`), members (E) or springs.
 
-use nalgebra::Vector3;
+use std::collections::HashMap;
 
-use super::frame3d::{default_reference, global_geometric, global_matrices, local_axes};
+use nalgebra::{Matrix3, Vector3};
+
+use super::frame3d::{Section3, default_reference, global_geometric, global_matrices, local_axes};
 use super::sparse::{Csc, csc_from_triplets};
 pub use super::spec::{
     AXES, Connection3, Joint3, Mass3, Material3, Member3, Node3, SectionSpec3, SpaceFrameSpec,
@@ -103,27 +105,72 @@ fn dof_index(field: &str, d: &str) -> Result<usize, ModelError> {
         .ok_or_else(|| invalid(field, format!("unknown DOF `{d}` (x, y, z, rx, ry, rz)")))
 }
 
-/// Checks and assembles a `[space_frame]` model.
+/// Checks and assembles a `[space_frame]` model, primally (paper (2)–(4)): the entries'
+/// references, the fixed DOFs, the nodes' DOFs, each member (mesh, end kinematics, element
+/// matrices), the bolted connections' springs, the joint and lumped masses, the discrete
+/// springs, then the parameters and channels.
 pub fn assemble(name: &str, s: &SpaceFrameSpec, bayesian: &BayesSpec) -> Result<Model, ModelError> {
-    let node_index = |n: &str, field: &str| {
-        s.nodes
-            .iter()
-            .position(|x| x.name == n)
-            .ok_or_else(|| ModelError::Unknown {
-                field: field.to_string(),
-                what: "node",
-                name: n.to_string(),
-            })
-    };
     check(s)?;
-    // Node DOFs (fixed ones excluded).
+    let restrained = restrained_dofs(s)?;
+    let fixed = fixed_dofs(s, restrained)?;
+    let mut frame = Assembly::new(s, restrained, &fixed);
+    for m in &s.members {
+        frame.add_member(m)?;
+    }
+    let connections = frame.add_connection_springs();
+    frame.add_joint_masses()?;
+    frame.add_lumped_masses()?;
+    frame.add_springs()?;
+    let parameters = parameters_of(s, &connections);
+    let channels = frame.channels()?;
+    let (labels, mats) = frame.into_matrices();
+    super::finish::finish(
+        name,
+        labels,
+        mats,
+        parameters,
+        connections,
+        channels,
+        bayesian.clone(),
+    )
+}
+
+/// The index of node `n`.
+fn node_index(s: &SpaceFrameSpec, n: &str, field: &str) -> Result<usize, ModelError> {
+    s.nodes
+        .iter()
+        .position(|x| x.name == n)
+        .ok_or_else(|| ModelError::Unknown {
+            field: field.to_string(),
+            what: "node",
+            name: n.to_string(),
+        })
+}
+
+/// The matrix an item's stiffness goes to: `K_l` (slot `l`, from 1) for the parameter
+/// listing it in `list`, K0 (slot 0) for none.
+fn slot_of(s: &SpaceFrameSpec, item: &str, list: fn(&ParameterSpec) -> &Vec<String>) -> usize {
+    s.parameters
+        .iter()
+        .position(|q| list(q).iter().any(|x| x == item))
+        .map_or(0, |l| l + 1)
+}
+
+/// The DOFs fixed at every node and mesh node (`restrain`).
+fn restrained_dofs(s: &SpaceFrameSpec) -> Result<[bool; 6], ModelError> {
     let mut restrained = [false; 6];
     for d in &s.restrain {
         restrained[dof_index("restrain", d)?] = true;
     }
+    Ok(restrained)
+}
+
+/// The fixed DOFs of each node: the restrained ones, and its support's (all six unless it
+/// lists them in `fix`).
+fn fixed_dofs(s: &SpaceFrameSpec, restrained: [bool; 6]) -> Result<Vec<[bool; 6]>, ModelError> {
     let mut fixed = vec![restrained; s.nodes.len()];
     for sup in &s.supports {
-        let k = node_index(&sup.node, "supports.node")?;
+        let k = node_index(s, &sup.node, "supports.node")?;
         match &sup.fix {
             None => fixed[k] = [true; 6],
             Some(list) => {
@@ -133,41 +180,75 @@ pub fn assemble(name: &str, s: &SpaceFrameSpec, bayesian: &BayesSpec) -> Result<
             }
         }
     }
-    let mut dofs = Dofs { labels: Vec::new() };
-    let node_dofs: Vec<[Option<usize>; 6]> = s
-        .nodes
-        .iter()
-        .enumerate()
-        .map(|(k, n)| {
-            std::array::from_fn(|c| {
-                (!fixed[k][c]).then(|| dofs.add(format!("{}.{}", n.name, DOF_NAMES[c])))
-            })
+    Ok(fixed)
+}
+
+/// A node's DOFs as combinations (empty where fixed).
+fn node_combo(dofs: &[Option<usize>; 6]) -> [Combo; 6] {
+    std::array::from_fn(|c| dofs[c].map(|d| vec![(d, 1.0)]).unwrap_or_default())
+}
+
+/// The combinations at every location: the nodes, and each member's mesh nodes
+/// `<member>.<k>`.
+struct Locations(HashMap<String, [Combo; 6]>);
+
+impl Locations {
+    /// The combinations at location `at`, named in `field`.
+    fn get(&self, field: String, at: &str) -> Result<&[Combo; 6], ModelError> {
+        self.0.get(at).ok_or_else(|| ModelError::Unknown {
+            field,
+            what: "location (node or <member>.<k>)",
+            name: at.to_string(),
         })
-        .collect();
-    let node_combo = |k: usize| -> [Combo; 6] {
-        std::array::from_fn(|c| node_dofs[k][c].map(|d| vec![(d, 1.0)]).unwrap_or_default())
-    };
-    // Every location: the nodes, and each member's mesh nodes `<member>.<k>`.
-    let mut locations: std::collections::HashMap<String, [Combo; 6]> = s
-        .nodes
-        .iter()
-        .enumerate()
-        .map(|(k, n)| (n.name.clone(), node_combo(k)))
-        .collect();
-    let p = s.parameters.len();
-    let slot_of = |item: &str, list: fn(&ParameterSpec) -> &Vec<String>| {
-        s.parameters
-            .iter()
-            .position(|q| list(q).iter().any(|x| x == item))
-            .map_or(0, |l| l + 1)
-    };
-    // K0, K_1..K_p, M as triplets.
-    let mut mats: Vec<Vec<(usize, usize, f64)>> = vec![Vec::new(); p + 2];
-    // Connection axes: name, member, node, ℓ (spring elongation), k.
-    let mut springs: Vec<(String, String, String, Combo, f64)> = Vec::new();
-    for m in &s.members {
+    }
+
+    /// Names a location.
+    fn insert(&mut self, at: String, combo: [Combo; 6]) {
+        self.0.insert(at, combo);
+    }
+}
+
+/// A sprung axis of a bolted connection: its spring `½ k (ℓ · q)²`, `ℓ` the end's own
+/// rotation less the joint's about the axis.
+struct AxisSpring {
+    /// `<connection>.<torsion|weak|strong>`.
+    name: String,
+    member: String,
+    node: String,
+    ell: Combo,
+    k: f64,
+}
+
+/// Where a member lies: its end nodes, section, local axes and joint offsets.
+struct MemberGeometry {
+    /// `members.<name>`, for errors.
+    field: String,
+    /// The indices of its `from` and `to` nodes.
+    a: usize,
+    b: usize,
+    section: Section3,
+    /// The positions of its `from` and `to` nodes.
+    pa: Vector3<f64>,
+    pb: Vector3<f64>,
+    reference: Vector3<f64>,
+    /// Global to local axes (rows: local x, y, z).
+    r: Matrix3<f64>,
+    /// The unit vector from `from` to `to`.
+    e: Vector3<f64>,
+    /// The joint offsets at `from` and `to`.
+    sa: f64,
+    sb: f64,
+}
+
+impl MemberGeometry {
+    /// Checks member `m` (its nodes, at least one element, its section, its orientation,
+    /// longer than its joint offsets) and places it.
+    fn of(s: &SpaceFrameSpec, m: &Member3) -> Result<Self, ModelError> {
         let field = format!("members.{}", m.name);
-        let (a, b) = (node_index(&m.from, &field)?, node_index(&m.to, &field)?);
+        let (a, b) = (
+            node_index(s, &m.from, &field)?,
+            node_index(s, &m.to, &field)?,
+        );
         if m.elements == 0 {
             return Err(invalid(format!("{field}.elements"), "must be at least 1"));
         }
@@ -189,145 +270,339 @@ pub fn assemble(name: &str, s: &SpaceFrameSpec, bayesian: &BayesSpec) -> Result<
                 format!("length {len} m is not longer than the joint offsets {sa} + {sb} m"),
             ));
         }
-        // The slot of this member's stiffness: the parameter scaling its E, or K0.
-        let slot = slot_of(&m.name, |q| &q.members);
-        // Mesh nodes: the ends follow their joints; interior ones get six DOFs.
+        Ok(Self {
+            field,
+            a,
+            b,
+            section,
+            pa,
+            pb,
+            reference,
+            r,
+            e,
+            sa,
+            sb,
+        })
+    }
+}
+
+/// A space frame under assembly: its numbered DOFs, the combinations at every location,
+/// the triplets of `K0, K_1 … K_p, M`, and the connection springs met so far.
+struct Assembly<'s> {
+    s: &'s SpaceFrameSpec,
+    /// The DOFs fixed at every node and mesh node.
+    restrained: [bool; 6],
+    dofs: Dofs,
+    /// Each node's numbered DOFs (`None`: fixed).
+    node_dofs: Vec<[Option<usize>; 6]>,
+    locations: Locations,
+    /// `K0, K_1 … K_p, M` as triplets.
+    mats: Vec<Vec<(usize, usize, f64)>>,
+    /// The sprung connection axes, in the order their DOFs were numbered.
+    springs: Vec<AxisSpring>,
+}
+
+impl<'s> Assembly<'s> {
+    /// Numbers the nodes' free DOFs (node by node, `x` … `rz`) and names the nodes as
+    /// locations.
+    fn new(s: &'s SpaceFrameSpec, restrained: [bool; 6], fixed: &[[bool; 6]]) -> Self {
+        let mut dofs = Dofs { labels: Vec::new() };
+        let node_dofs: Vec<[Option<usize>; 6]> = s
+            .nodes
+            .iter()
+            .enumerate()
+            .map(|(k, n)| {
+                std::array::from_fn(|c| {
+                    (!fixed[k][c]).then(|| dofs.add(format!("{}.{}", n.name, DOF_NAMES[c])))
+                })
+            })
+            .collect();
+        let locations = Locations(
+            s.nodes
+                .iter()
+                .enumerate()
+                .map(|(k, n)| (n.name.clone(), node_combo(&node_dofs[k])))
+                .collect(),
+        );
+        Self {
+            s,
+            restrained,
+            dofs,
+            node_dofs,
+            locations,
+            mats: vec![Vec::new(); s.parameters.len() + 2],
+            springs: Vec::new(),
+        }
+    }
+
+    /// The index of `M` in `mats`.
+    fn mass_slot(&self) -> usize {
+        self.s.parameters.len() + 1
+    }
+
+    /// Checks, meshes and adds member `m`: its stiffness to K0 or the `K_l` of the
+    /// parameter scaling its E.
+    fn add_member(&mut self, m: &Member3) -> Result<(), ModelError> {
+        let g = MemberGeometry::of(self.s, m)?;
+        let slot = slot_of(self.s, &m.name, |q| &q.members);
+        let mesh = self.mesh(m, &g);
+        self.add_elements(m, &g, &mesh, slot)
+    }
+
+    /// The combinations at member `m`'s mesh nodes from its `from` end, numbering their
+    /// DOFs: the ends follow their joints ([`Self::end_combo`]), interior nodes get six
+    /// DOFs each (less the restrained), numbered before the far end's (the plane frames'
+    /// DOF order).
+    fn mesh(&mut self, m: &Member3, g: &MemberGeometry) -> Vec<[Combo; 6]> {
         let mut mesh: Vec<[Combo; 6]> = Vec::with_capacity(m.elements + 1);
-        for (end, k, offset) in [(0usize, a, e * sa), (m.elements, b, -e * sb)] {
-            // Interior mesh nodes first, then the far end (the plane frames' DOF order).
+        for (end, k, offset) in [(0usize, g.a, g.e * g.sa), (m.elements, g.b, -g.e * g.sb)] {
             if end > 0 {
                 for i in 1..m.elements {
-                    let interior: [Combo; 6] = std::array::from_fn(|c| {
-                        if restrained[c] {
-                            Vec::new()
-                        } else {
-                            vec![(dofs.add(format!("{}.{i}.{}", m.name, DOF_NAMES[c])), 1.0)]
-                        }
-                    });
-                    locations.insert(format!("{}.{i}", m.name), interior.clone());
-                    mesh.push(interior);
+                    mesh.push(self.interior_node(m, i));
                 }
             }
-            let mut combo = node_combo(k);
-            // The end sits `offset` from the joint's centre: u_end = u + ω × offset.
-            let w = [combo[3].clone(), combo[4].clone(), combo[5].clone()];
-            add_scaled(&mut combo[0], &w[1], offset.z);
-            add_scaled(&mut combo[0], &w[2], -offset.y);
-            add_scaled(&mut combo[1], &w[2], offset.x);
-            add_scaled(&mut combo[1], &w[0], -offset.z);
-            add_scaled(&mut combo[2], &w[0], offset.y);
-            add_scaled(&mut combo[2], &w[1], -offset.x);
-            if let Some(conn) = s
-                .connections
-                .iter()
-                .find(|c| c.member == m.name && c.node == s.nodes[k].name)
-            {
-                // Rotations: Σ_a e_a ρ_a, ρ_a the joint's rotation about e_a (rigid) or
-                // the end's own DOF (sprung).
-                let mut rot: [Combo; 3] = Default::default();
-                for (ax, kval) in [conn.torsion, conn.weak, conn.strong].iter().enumerate() {
-                    let axis = r.row(ax);
-                    let mut along: Combo = Vec::new();
-                    for c in 0..3 {
-                        add_scaled(&mut along, &w[c], axis[c]);
-                    }
-                    let rho_a = match kval {
-                        None => along,
-                        Some(kv) => {
-                            let cname = format!("{}.{}", conn.name(), AXES[ax]);
-                            let own = dofs.add(cname.clone());
-                            // Spring: ½ k (ρ_own − e·ω_joint)².
-                            let mut diff: Combo = vec![(own, 1.0)];
-                            add_scaled(&mut diff, &along, -1.0);
-                            springs.push((cname, m.name.clone(), conn.node.clone(), diff, *kv));
-                            vec![(own, 1.0)]
-                        }
-                    };
-                    for c in 0..3 {
-                        add_scaled(&mut rot[c], &rho_a, axis[c]);
-                    }
-                }
-                let [rx, ry, rz] = rot;
-                [combo[3], combo[4], combo[5]] = [rx, ry, rz];
-            }
-            locations.insert(format!("{}.{end}", m.name), combo.clone());
+            let combo = self.end_combo(m, k, offset, &g.r);
+            self.locations
+                .insert(format!("{}.{end}", m.name), combo.clone());
             mesh.push(combo);
         }
-        let (p0, p1) = (pa + e * sa, pb - e * sb);
+        mesh
+    }
+
+    /// Numbers the DOFs of member `m`'s interior mesh node `i` and names it as a location.
+    fn interior_node(&mut self, m: &Member3, i: usize) -> [Combo; 6] {
+        let restrained = self.restrained;
+        let dofs = &mut self.dofs;
+        let interior: [Combo; 6] = std::array::from_fn(|c| {
+            if restrained[c] {
+                Vec::new()
+            } else {
+                vec![(dofs.add(format!("{}.{i}.{}", m.name, DOF_NAMES[c])), 1.0)]
+            }
+        });
+        self.locations
+            .insert(format!("{}.{i}", m.name), interior.clone());
+        interior
+    }
+
+    /// The combinations at member `m`'s end that sits `offset` from the centre of joint
+    /// `k`: translations `u + ω × offset`, rotations the joint's `ω` or, at a bolted
+    /// connection, [`Self::connection_rotations`].
+    fn end_combo(
+        &mut self,
+        m: &Member3,
+        k: usize,
+        offset: Vector3<f64>,
+        r: &Matrix3<f64>,
+    ) -> [Combo; 6] {
+        let s = self.s;
+        let mut combo = node_combo(&self.node_dofs[k]);
+        let w = [combo[3].clone(), combo[4].clone(), combo[5].clone()];
+        add_scaled(&mut combo[0], &w[1], offset.z);
+        add_scaled(&mut combo[0], &w[2], -offset.y);
+        add_scaled(&mut combo[1], &w[2], offset.x);
+        add_scaled(&mut combo[1], &w[0], -offset.z);
+        add_scaled(&mut combo[2], &w[0], offset.y);
+        add_scaled(&mut combo[2], &w[1], -offset.x);
+        if let Some(conn) = s
+            .connections
+            .iter()
+            .find(|c| c.member == m.name && c.node == s.nodes[k].name)
+        {
+            let [rx, ry, rz] = self.connection_rotations(m, conn, r, &w);
+            [combo[3], combo[4], combo[5]] = [rx, ry, rz];
+        }
+        combo
+    }
+
+    /// The rotations `Σ_a e_a ρ_a` of a member end at connection `conn`, `e_a` the member's
+    /// local axes (rows of `r`) and `ρ_a` the joint rotation `w` about `e_a` (a rigid axis)
+    /// or the end's own DOF (a sprung one, whose spring `½ k (ρ_own − e_a · ω)²` is kept for
+    /// paper (2)).
+    fn connection_rotations(
+        &mut self,
+        m: &Member3,
+        conn: &Connection3,
+        r: &Matrix3<f64>,
+        w: &[Combo; 3],
+    ) -> [Combo; 3] {
+        let mut rot: [Combo; 3] = Default::default();
+        for (ax, kval) in [conn.torsion, conn.weak, conn.strong].iter().enumerate() {
+            let axis = r.row(ax);
+            let mut along: Combo = Vec::new();
+            for c in 0..3 {
+                add_scaled(&mut along, &w[c], axis[c]);
+            }
+            let rho_a = match kval {
+                None => along,
+                Some(kv) => {
+                    let cname = format!("{}.{}", conn.name(), AXES[ax]);
+                    let own = self.dofs.add(cname.clone());
+                    let mut diff: Combo = vec![(own, 1.0)];
+                    add_scaled(&mut diff, &along, -1.0);
+                    self.springs.push(AxisSpring {
+                        name: cname,
+                        member: m.name.clone(),
+                        node: conn.node.clone(),
+                        ell: diff,
+                        k: *kv,
+                    });
+                    vec![(own, 1.0)]
+                }
+            };
+            for c in 0..3 {
+                add_scaled(&mut rot[c], &rho_a, axis[c]);
+            }
+        }
+        rot
+    }
+
+    /// Adds member `m`'s elements over its `mesh`: stiffness to `K_slot`, consistent mass
+    /// to M and, under an axial force, geometric stiffness to K0.
+    fn add_elements(
+        &mut self,
+        m: &Member3,
+        g: &MemberGeometry,
+        mesh: &[[Combo; 6]],
+        slot: usize,
+    ) -> Result<(), ModelError> {
+        let mass = self.mass_slot();
+        let (p0, p1) = (g.pa + g.e * g.sa, g.pb - g.e * g.sb);
         let step = (p1 - p0) / m.elements as f64;
         for el in 0..m.elements {
             let q0 = p0 + step * el as f64;
-            let (ke, me) = global_matrices(&section, q0, q0 + step, reference)
-                .map_err(|err| invalid(field.clone(), err.to_string()))?;
+            let (ke, me) = global_matrices(&g.section, q0, q0 + step, g.reference)
+                .map_err(|err| invalid(g.field.clone(), err.to_string()))?;
             let combos: [Combo; 12] = std::array::from_fn(|i| mesh[el + i / 6][i % 6].clone());
-            scatter(&mut mats[slot], &combos, &ke);
-            scatter(&mut mats[p + 1], &combos, &me);
+            scatter(&mut self.mats[slot], &combos, &ke);
+            scatter(&mut self.mats[mass], &combos, &me);
             if m.axial_force != 0.0 {
-                let kg = global_geometric(m.axial_force, q0, q0 + step, reference)
-                    .map_err(|err| invalid(field.clone(), err.to_string()))?;
-                scatter(&mut mats[0], &combos, &kg);
+                let kg = global_geometric(m.axial_force, q0, q0 + step, g.reference)
+                    .map_err(|err| invalid(g.field.clone(), err.to_string()))?;
+                scatter(&mut self.mats[0], &combos, &kg);
             }
         }
+        Ok(())
     }
-    let location = |field: String, at: &str| -> Result<&[Combo; 6], ModelError> {
-        locations.get(at).ok_or_else(|| ModelError::Unknown {
-            field,
-            what: "location (node or <member>.<k>)",
-            name: at.to_string(),
-        })
-    };
-    // Connection springs into K0 or their parameter's K_l, paper (2).
-    let mut connections: Vec<Connection> = Vec::with_capacity(springs.len());
-    for (cname, member, node, diff, kv) in springs {
-        let slot = slot_of(&cname, |q| &q.connections);
-        scatter_rank_one(&mut mats[slot], &diff, kv);
-        connections.push(Connection {
-            name: cname,
-            member,
-            node,
-            k: kv,
-            parameter: (slot > 0).then(|| slot - 1),
-        });
+
+    /// Adds each connection axis's spring `k ℓ ℓᵀ` to K0 or its parameter's `K_l`, paper
+    /// (2), and lists the connections in that order.
+    fn add_connection_springs(&mut self) -> Vec<Connection> {
+        let springs = std::mem::take(&mut self.springs);
+        let mut connections: Vec<Connection> = Vec::with_capacity(springs.len());
+        for sp in springs {
+            let slot = slot_of(self.s, &sp.name, |q| &q.connections);
+            scatter_rank_one(&mut self.mats[slot], &sp.ell, sp.k);
+            connections.push(Connection {
+                name: sp.name,
+                member: sp.member,
+                node: sp.node,
+                k: sp.k,
+                parameter: (slot > 0).then(|| slot - 1),
+            });
+        }
+        connections
     }
-    // Joint masses and inertias, at the joint's centre.
-    for j in &s.joints {
-        let k = node_index(&j.node, "joints.node")?;
-        super::finish::check_non_negative(format!("joints.{}.mass", j.node), j.mass)?;
-        super::finish::check_non_negative(format!("joints.{}.size", j.node), j.size)?;
-        for (c, dof) in node_dofs[k].iter().enumerate() {
-            let v = if c < 3 { j.mass } else { j.inertia[c - 3] };
-            super::finish::check_non_negative(format!("joints.{}.inertia", j.node), v)?;
-            if let (Some(d), true) = (dof, v != 0.0) {
-                mats[p + 1].push((*d, *d, v));
+
+    /// Adds each joint's mass and rotary inertia, at the joint's centre, to M.
+    fn add_joint_masses(&mut self) -> Result<(), ModelError> {
+        let s = self.s;
+        let mass = self.mass_slot();
+        for j in &s.joints {
+            let k = node_index(s, &j.node, "joints.node")?;
+            super::finish::check_non_negative(format!("joints.{}.mass", j.node), j.mass)?;
+            super::finish::check_non_negative(format!("joints.{}.size", j.node), j.size)?;
+            for (c, dof) in self.node_dofs[k].iter().enumerate() {
+                let v = if c < 3 { j.mass } else { j.inertia[c - 3] };
+                super::finish::check_non_negative(format!("joints.{}.inertia", j.node), v)?;
+                if let (Some(d), true) = (dof, v != 0.0) {
+                    self.mats[mass].push((*d, *d, v));
+                }
             }
         }
+        Ok(())
     }
-    // Lumped masses.
-    for (i, ms) in s.masses.iter().enumerate() {
-        let field = format!("masses[{i}]");
-        let c = location(format!("{field}.at"), &ms.at)?;
-        for (d, ell) in c.iter().enumerate() {
-            let v = if d < 3 { ms.mass } else { ms.inertia[d - 3] };
-            super::finish::check_non_negative(format!("{field}.{}", DOF_NAMES[d]), v)?;
-            scatter_rank_one(&mut mats[p + 1], ell, v);
+
+    /// Adds each lumped mass and rotary inertia `v ℓ ℓᵀ`, at its location, to M.
+    fn add_lumped_masses(&mut self) -> Result<(), ModelError> {
+        let s = self.s;
+        let mass = self.mass_slot();
+        for (i, ms) in s.masses.iter().enumerate() {
+            let field = format!("masses[{i}]");
+            let c = self.locations.get(format!("{field}.at"), &ms.at)?;
+            for (d, ell) in c.iter().enumerate() {
+                let v = if d < 3 { ms.mass } else { ms.inertia[d - 3] };
+                super::finish::check_non_negative(format!("{field}.{}", DOF_NAMES[d]), v)?;
+                scatter_rank_one(&mut self.mats[mass], ell, v);
+            }
         }
+        Ok(())
     }
-    // Discrete springs (elastic supports when grounded).
-    for (i, sp) in s.springs.iter().enumerate() {
-        let field = format!("springs[{i}] `{}`", sp.name);
-        super::finish::check_positive(format!("{field}.k"), sp.k)?;
-        let d = dof_index(&format!("{field}.dof"), &sp.dof)?;
-        let mut ell = location(format!("{field}.a"), &sp.a)?[d].clone();
-        if let Some(b) = &sp.b {
-            add_scaled(&mut ell, &location(format!("{field}.b"), b)?[d], -1.0);
+
+    /// Adds each discrete spring `k ℓ ℓᵀ` (`ℓ` its DOF at `a` less that at `b`; an elastic
+    /// support when `b` is absent) to K0 or its parameter's `K_l`.
+    fn add_springs(&mut self) -> Result<(), ModelError> {
+        let s = self.s;
+        for (i, sp) in s.springs.iter().enumerate() {
+            let field = format!("springs[{i}] `{}`", sp.name);
+            super::finish::check_positive(format!("{field}.k"), sp.k)?;
+            let d = dof_index(&format!("{field}.dof"), &sp.dof)?;
+            let mut ell = self.locations.get(format!("{field}.a"), &sp.a)?[d].clone();
+            if let Some(b) = &sp.b {
+                add_scaled(
+                    &mut ell,
+                    &self.locations.get(format!("{field}.b"), b)?[d],
+                    -1.0,
+                );
+            }
+            if ell.is_empty() {
+                return Err(invalid(field, "both ends are fixed"));
+            }
+            scatter_rank_one(
+                &mut self.mats[slot_of(s, &sp.name, |q| &q.springs)],
+                &ell,
+                sp.k,
+            );
         }
-        if ell.is_empty() {
-            return Err(invalid(field, "both ends are fixed"));
-        }
-        scatter_rank_one(&mut mats[slot_of(&sp.name, |q| &q.springs)], &ell, sp.k);
+        Ok(())
     }
-    let parameters = s
-        .parameters
+
+    /// The channels, each reading the combination of its location's DOF `dir`.
+    fn channels(&self) -> Result<Vec<Channel>, ModelError> {
+        self.s
+            .channels
+            .iter()
+            .map(|ch| {
+                let field = format!("channels.{}", ch.name);
+                let c = dof_index(&format!("{field}.dir"), &ch.dir)?;
+                let dofs = self.locations.get(format!("{field}.at"), &ch.at)?[c].clone();
+                if dofs.is_empty() {
+                    return Err(invalid(format!("{field}.at"), "reads only fixed DOFs"));
+                }
+                Ok(Channel {
+                    name: ch.name.clone(),
+                    dofs,
+                })
+            })
+            .collect()
+    }
+
+    /// The DOF labels, and `K0, K_1 … K_p, M` as sparse matrices.
+    fn into_matrices(self) -> (Vec<String>, Vec<Csc>) {
+        let n = self.dofs.labels.len();
+        let mats: Vec<Csc> = self
+            .mats
+            .into_iter()
+            .map(|t| csc_from_triplets(n, t.into_iter()))
+            .collect();
+        (self.dofs.labels, mats)
+    }
+}
+
+/// The updating parameters: each scales members' E, springs, or connection axes (by their
+/// index in `connections`).
+fn parameters_of(s: &SpaceFrameSpec, connections: &[Connection]) -> Vec<Parameter> {
+    s.parameters
         .iter()
         .map(|q| Parameter {
             name: q.name.clone(),
@@ -349,37 +624,7 @@ pub fn assemble(name: &str, s: &SpaceFrameSpec, bayesian: &BayesSpec) -> Result<
                 )
             },
         })
-        .collect();
-    let channels = s
-        .channels
-        .iter()
-        .map(|ch| {
-            let field = format!("channels.{}", ch.name);
-            let c = dof_index(&format!("{field}.dir"), &ch.dir)?;
-            let dofs = location(format!("{field}.at"), &ch.at)?[c].clone();
-            if dofs.is_empty() {
-                return Err(invalid(format!("{field}.at"), "reads only fixed DOFs"));
-            }
-            Ok(Channel {
-                name: ch.name.clone(),
-                dofs,
-            })
-        })
-        .collect::<Result<Vec<_>, ModelError>>()?;
-    let n = dofs.labels.len();
-    let mats: Vec<Csc> = mats
-        .into_iter()
-        .map(|t| csc_from_triplets(n, t.into_iter()))
-        .collect();
-    super::finish::finish(
-        name,
-        dofs.labels,
-        mats,
-        parameters,
-        connections,
-        channels,
-        bayesian.clone(),
-    )
+        .collect()
 }
 
 /// The references between the entries: names unique, every connection on an existing
