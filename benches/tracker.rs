@@ -192,5 +192,50 @@ fn bench_replay(c: &mut Criterion) {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-criterion_group!(benches, bench_warm_update, bench_replay);
+/// A valid set in the wrong unit (every frequency ×1/1000) on a commissioned tracker: the
+/// first one costs the range's two eigen solves (printed), every later one a comparison
+/// (criterion). Either is refused before any fit.
+fn bench_implausible(c: &mut Criterion) {
+    boltwatch::core::sequential_numerics();
+    let spec = model_spec();
+    let model = Model::from_spec(&spec).unwrap();
+    let sets = healthy_sets(&spec, 1100);
+    let t0 = chrono::Utc::now();
+    let scaled: Vec<Vec<u8>> = sets[50..]
+        .iter()
+        .map(|s| {
+            let mut v: serde_json::Value = serde_json::from_slice(s).unwrap();
+            for m in v["modes"].as_array_mut().unwrap() {
+                m["frequency_hz"] = (m["frequency_hz"].as_f64().unwrap() / 1000.0).into();
+            }
+            serde_json::to_vec(&v).unwrap()
+        })
+        .collect();
+    let mut tracker = Tracker::new(model.clone(), tracking_config()).unwrap();
+    for s in &sets[..50] {
+        tracker.handle(t0, s);
+    }
+    let commissioned = tracker.checkpoint();
+    let mut first = Tracker::restore(model.clone(), tracking_config(), commissioned).unwrap();
+    let start = Instant::now();
+    let a = first.handle(t0, &scaled[0]);
+    println!(
+        "a set ×1/1000 refused in {:?} on a restored tracker (the range's solves included)",
+        start.elapsed()
+    );
+    assert_eq!(a.len(), 1, "refused: one rejection");
+    let mut next = 1;
+    c.bench_function("lab_frame_implausible_set_refused", |b| {
+        b.iter(|| {
+            next = if next + 1 == scaled.len() {
+                1
+            } else {
+                next + 1
+            };
+            black_box(first.handle(t0, &scaled[next]))
+        })
+    });
+}
+
+criterion_group!(benches, bench_warm_update, bench_replay, bench_implausible);
 criterion_main!(benches);

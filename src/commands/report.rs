@@ -42,16 +42,19 @@ struct Outputs {
     rejected: usize,
 }
 
+/// The `time` of an output message.
 fn time(v: &Value) -> Option<DateTime<Utc>> {
     DateTime::parse_from_rfc3339(v["time"].as_str()?)
         .ok()
         .map(|t| t.with_timezone(&Utc))
 }
 
+/// A JSON number as f64 (NaN when absent or not a number).
 fn f(v: &Value) -> f64 {
     v.as_f64().unwrap_or(f64::NAN)
 }
 
+/// Writes the figures of each structure in the recording, and the frames of `--model`.
 pub fn run(args: &ReportArgs) -> Result<()> {
     let msgs = read_all(&args.recording)?;
     let mut by: BTreeMap<String, Outputs> = BTreeMap::new();
@@ -172,6 +175,8 @@ fn structure_svg(
 /// A figure: its name, panels and columns.
 type Figure = (&'static str, Vec<Panel>, usize);
 
+/// The figures of one structure, time in days from its first estimate: stiffness,
+/// frequencies, ε and, with normalisation, the seasonal ones.
 fn report_structure(structure: &str, o: &Outputs) -> Result<Vec<Figure>> {
     let t0 = o
         .stiffness
@@ -190,7 +195,24 @@ fn report_structure(structure: &str, o: &Outputs) -> Result<Vec<Figure>> {
         .flatten()
         .map(|p| p["name"].as_str().unwrap_or_default().to_string())
         .collect();
-    // Stiffness: one panel per parameter.
+    let mut figures = vec![
+        stiffness_figure(structure, o, &names, &days, &day),
+        frequencies_figure(structure, o, &days),
+        epsilon_figure(structure, o, &days, &day),
+    ];
+    figures.extend(seasons_figures(structure, o, &names, &days, &day));
+    Ok(figures)
+}
+
+/// `stiffness`: one panel per parameter, with θ per set, its filtered level and that
+/// level's 95 % band, the baseline and the alerts.
+fn stiffness_figure(
+    structure: &str,
+    o: &Outputs,
+    names: &[String],
+    days: &[f64],
+    day: &dyn Fn(&Value) -> f64,
+) -> Figure {
     let mut panels = Vec::new();
     for (l, name) in names.iter().enumerate() {
         let col = |get: &dyn Fn(&Value) -> f64| -> Vec<f64> {
@@ -208,19 +230,19 @@ fn report_structure(structure: &str, o: &Outputs) -> Result<Vec<Figure>> {
         );
         p.bands.push(Band {
             label: "95 % band of the filtered level".into(),
-            x: days.clone(),
+            x: days.to_vec(),
             lower: col(&|v| f(&v["filtered"]["lower95"])),
             upper: col(&|v| f(&v["filtered"]["upper95"])),
         });
         p.series.push(
-            Series::trace("θ per set", days.clone(), col(&|v| f(&v["theta"])))
+            Series::trace("θ per set", days.to_vec(), col(&|v| f(&v["theta"])))
                 .with_color("#9a9a9a")
                 .with_width(0.6),
         );
         p.series.push(
             Series::trace(
                 "filtered",
-                days.clone(),
+                days.to_vec(),
                 col(&|v| f(&v["filtered"]["level"])),
             )
             .with_color("#1f77b4"),
@@ -234,11 +256,15 @@ fn report_structure(structure: &str, o: &Outputs) -> Result<Vec<Figure>> {
             p.hlines.push((b, "baseline".into()));
         }
         p.series
-            .extend(alert_markers(o, name, &day, |a| f(&a["theta"])));
+            .extend(alert_markers(o, name, day, |a| f(&a["theta"])));
         panels.push(p);
     }
-    let stiffness = ("stiffness", panels, 3);
-    // Frequencies.
+    ("stiffness", panels, 3)
+}
+
+/// `frequencies`: the measured frequencies, their change from the mean of the first 20
+/// sets, and model − measured, a trace per mode in each panel.
+fn frequencies_figure(structure: &str, o: &Outputs, days: &[f64]) -> Figure {
     let n_modes = o
         .stiffness
         .iter()
@@ -267,42 +293,56 @@ fn report_structure(structure: &str, o: &Outputs) -> Result<Vec<Figure>> {
         Scale::Linear,
     );
     for m in 0..n_modes {
-        let get =
-            |k: &str| -> Vec<f64> { o.stiffness.iter().map(|e| f(&e["modes"][m][k])).collect() };
-        let (meas, model) = (get("measured_hz"), get("model_hz"));
-        let label = format!("mode {}", m + 1);
-        // Reference: the mean of the first 20 sets (the commissioning period).
-        let early: Vec<f64> = meas
-            .iter()
-            .copied()
-            .filter(|v| v.is_finite())
-            .take(20)
-            .collect();
-        let first = early.iter().sum::<f64>() / early.len() as f64;
-        pf.series
-            .push(Series::trace(label.clone(), days.clone(), meas.clone()).with_width(0.8));
-        pc.series.push(
-            Series::trace(
-                label.clone(),
-                days.clone(),
-                meas.iter().map(|v| 100.0 * (v / first - 1.0)).collect(),
-            )
-            .with_width(0.6),
-        );
-        pe.series.push(
-            Series::trace(
-                label,
-                days.clone(),
-                meas.iter()
-                    .zip(&model)
-                    .map(|(a, b)| 100.0 * (b - a) / a)
-                    .collect(),
-            )
-            .with_width(0.6),
-        );
+        let [measured, change, difference] = mode_traces(o, days, m);
+        pf.series.push(measured);
+        pc.series.push(change);
+        pe.series.push(difference);
     }
-    let frequencies = ("frequencies", vec![pf, pc, pe], 1);
-    // ε.
+    ("frequencies", vec![pf, pc, pe], 1)
+}
+
+/// Mode `m`'s traces: its measured frequency, that frequency's change in % from the mean
+/// of the first 20 sets (the commissioning period), and model − measured in % of measured.
+fn mode_traces(o: &Outputs, days: &[f64], m: usize) -> [Series; 3] {
+    let get = |k: &str| -> Vec<f64> { o.stiffness.iter().map(|e| f(&e["modes"][m][k])).collect() };
+    let (meas, model) = (get("measured_hz"), get("model_hz"));
+    let label = format!("mode {}", m + 1);
+    // Reference: the mean of the first 20 sets (the commissioning period).
+    let early: Vec<f64> = meas
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite())
+        .take(20)
+        .collect();
+    let first = early.iter().sum::<f64>() / early.len() as f64;
+    [
+        Series::trace(label.clone(), days.to_vec(), meas.clone()).with_width(0.8),
+        Series::trace(
+            label.clone(),
+            days.to_vec(),
+            meas.iter().map(|v| 100.0 * (v / first - 1.0)).collect(),
+        )
+        .with_width(0.6),
+        Series::trace(
+            label,
+            days.to_vec(),
+            meas.iter()
+                .zip(&model)
+                .map(|(a, b)| 100.0 * (b - a) / a)
+                .collect(),
+        )
+        .with_width(0.6),
+    ]
+}
+
+/// `epsilon`: the misfit ε (5) per set against its χ² bound, with the model-inadequacy
+/// alerts and the cold starts.
+fn epsilon_figure(
+    structure: &str,
+    o: &Outputs,
+    days: &[f64],
+    day: &dyn Fn(&Value) -> f64,
+) -> Figure {
     let mut pe = Panel::new(
         &format!("{structure}: misfit ε (5) per set"),
         "time, days",
@@ -313,7 +353,7 @@ fn report_structure(structure: &str, o: &Outputs) -> Result<Vec<Figure>> {
     pe.series.push(
         Series::trace(
             "ε",
-            days.clone(),
+            days.to_vec(),
             o.stiffness.iter().map(|e| f(&e["epsilon"])).collect(),
         )
         .with_width(0.8),
@@ -321,7 +361,7 @@ fn report_structure(structure: &str, o: &Outputs) -> Result<Vec<Figure>> {
     pe.series.push(
         Series::trace(
             "χ² bound",
-            days.clone(),
+            days.to_vec(),
             o.stiffness.iter().map(|e| f(&e["epsilon_bound"])).collect(),
         )
         .with_color("#555555"),
@@ -350,10 +390,7 @@ fn report_structure(structure: &str, o: &Outputs) -> Result<Vec<Figure>> {
             .with_color("#d62728"),
         );
     }
-    let epsilon = ("epsilon", vec![pe], 1);
-    let mut figures = vec![stiffness, frequencies, epsilon];
-    figures.extend(seasons_figures(structure, o, &names, &days, &day));
-    Ok(figures)
+    ("epsilon", vec![pe], 1)
 }
 
 /// With normalisation: `normalised` (each connection's loss against the stiffness expected

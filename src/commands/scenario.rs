@@ -12,6 +12,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
 use crate::contract::accel::Accel;
+use crate::contract::modal_set::ModalSet;
 use crate::contract::{rfc3339, to_wire};
 use crate::core::model::Model;
 use crate::core::model::spec::ModelSpec;
@@ -118,7 +119,30 @@ fn significant(v: f64, digits: u32) -> f64 {
     (v * scale).round() / scale
 }
 
+/// Writes the synthetic recording `args.out` of the scenario and prints what it holds.
 pub fn run(args: &ScenarioArgs) -> Result<()> {
+    check_request(args)?;
+    let (spec, model) = simulated_model(args)?;
+    let sc = build_scenario(args, &model)?;
+    check_raw(&args.raw)?;
+    write_recording(args, &spec, &model, &sc)?;
+    let bytes = std::fs::metadata(&args.out)?.len();
+    println!(
+        "scenario {}: {} sets over {} days of {} ({}), {:.1} MB -> {}",
+        sc.name,
+        sc.sets,
+        sc.days,
+        model.name,
+        describe(&sc, &model),
+        bytes as f64 / 1e6,
+        args.out.display()
+    );
+    Ok(())
+}
+
+/// Rejects an unknown scenario and a `--sets` or `--days` out of range, before the model
+/// is read.
+fn check_request(args: &ScenarioArgs) -> Result<()> {
     if !NAMES.contains(&args.name.as_str()) {
         bail!(
             "unknown scenario `{}` (known: {})",
@@ -134,6 +158,12 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
     {
         bail!("--days = {d} must be a finite number > 0");
     }
+    Ok(())
+}
+
+/// The model the sets are simulated from, with its description (which `--accel` and the
+/// mass event simulate from), and `--modes` checked against its size.
+fn simulated_model(args: &ScenarioArgs) -> Result<(ModelSpec, Model)> {
     let text = crate::io::model::read_model_text(&args.model)?;
     let spec: ModelSpec =
         toml::from_str(&text).with_context(|| format!("model file {}", args.model.display()))?;
@@ -145,13 +175,19 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
             model.n_dof()
         );
     }
+    Ok((spec, model))
+}
+
+/// The named scenario on `model`, settled by the options ([`settle`]) and with its event
+/// moved to `--event-day`.
+fn build_scenario(args: &ScenarioArgs, model: &Model) -> Result<Scenario> {
     let mut sc = Scenario::named(
         &args.name,
-        &model,
+        model,
         args.connection.as_deref(),
         args.at.as_deref(),
     )?;
-    settle(&mut sc, args, &model)?;
+    settle(&mut sc, args, model)?;
     if let Some(d) = args.event_day {
         if !(d.is_finite() && d >= 0.0) {
             bail!("--event-day = {d} must be a finite number ≥ 0");
@@ -162,23 +198,40 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
             Event::None => bail!("--event-day: the healthy scenario has no event"),
         }
     }
-    if let Some(w) = args.raw.accel {
+    Ok(sc)
+}
+
+/// Checks the options of `--accel` when raw accelerations are asked for: a positive burst,
+/// rate and block no longer than the burst, a damping ratio in (0, 1), noise ≥ 0.
+fn check_raw(raw: &RawArgs) -> Result<()> {
+    if let Some(w) = raw.accel {
         let ok = |v: f64| v.is_finite() && v > 0.0;
-        if !(ok(w) && ok(args.raw.rate) && ok(args.raw.block) && args.raw.block <= w) {
+        if !(ok(w) && ok(raw.rate) && ok(raw.block) && raw.block <= w) {
             bail!(
                 "--accel {w}, --rate {}, --block {}: need positive numbers, a block no longer than the burst",
-                args.raw.rate,
-                args.raw.block
+                raw.rate,
+                raw.block
             );
         }
-        if !(args.raw.damping > 0.0 && args.raw.damping < 1.0 && args.raw.sensor_noise >= 0.0) {
+        if !(raw.damping > 0.0 && raw.damping < 1.0 && raw.sensor_noise >= 0.0) {
             bail!(
                 "--damping {} must be in (0, 1) and --sensor-noise {} ≥ 0",
-                args.raw.damping,
-                args.raw.sensor_noise
+                raw.damping,
+                raw.sensor_noise
             );
         }
     }
+    Ok(())
+}
+
+/// Writes every set of `sc` to `args.out`, with a progress bar: the modal set (or its
+/// accel burst), its truth and, with `--environment`, the readings due by then.
+fn write_recording(
+    args: &ScenarioArgs,
+    spec: &ModelSpec,
+    model: &Model,
+    sc: &Scenario,
+) -> Result<()> {
     let first = if args.raw.accel.is_some() {
         "accel"
     } else {
@@ -189,78 +242,29 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
         ChannelSpec::for_structure(&model.name, "truth")?,
         ChannelSpec::for_structure(&model.name, "environment")?,
     ];
-    let env_topic = &channels[2].topic;
-    let mut next_reading = 0.0;
-    let mut w = McapWriter::create(&args.out, &channels)?;
-    let names: Vec<&str> = model.parameters().iter().map(|p| p.name.as_str()).collect();
+    let w = McapWriter::create(&args.out, &channels)?;
+    let mut out = SetWriter {
+        args,
+        spec,
+        sc,
+        structure: &model.name,
+        names: model.parameters().iter().map(|p| p.name.as_str()).collect(),
+        topics: [
+            channels[0].topic.as_str(),
+            channels[1].topic.as_str(),
+            channels[2].topic.as_str(),
+        ],
+        w,
+        next_reading: 0.0,
+    };
     let pb = ProgressBar::new(sc.sets as u64).with_style(
         ProgressStyle::with_template("{msg} {bar:40} {pos}/{len} sets ({eta} left)")
             .expect("template"),
     );
     pb.set_message(format!("scenario {}", sc.name));
-    let modal_topic = &channels[0].topic;
-    let truth_topic = &channels[1].topic;
     let mut error: Option<anyhow::Error> = None;
-    sc.generate(&spec, |k, mut set, theta| {
-        if args.shape_digits > 0 {
-            for m in &mut set.modes {
-                if let Some(s) = &mut m.shape {
-                    for v in s.iter_mut().flatten() {
-                        *v = significant(*v, args.shape_digits);
-                    }
-                }
-            }
-        }
-        if args.environment {
-            set.temperature_c = None;
-        }
-        let t = to_ns(set.time);
-        let result = t.and_then(|t| {
-            if args.environment {
-                next_reading =
-                    write_readings(&mut w, env_topic, &sc, &model.name, next_reading, sc.day(k))?;
-            }
-            match args.raw.accel {
-                None => w.write(modal_topic, t, &serde_json::to_vec(&set.to_json())?)?,
-                Some(burst) => {
-                    let with_mass = match &sc.event {
-                        Event::Mass { at, mass, day } if sc.day(k) >= *day => {
-                            Some((at.as_str(), *mass))
-                        }
-                        _ => None,
-                    };
-                    write_burst(
-                        &mut w,
-                        modal_topic,
-                        &spec,
-                        with_mass,
-                        theta,
-                        set.time,
-                        burst,
-                        k,
-                        args,
-                    )?;
-                }
-            }
-            let added = match &sc.event {
-                Event::Mass { at, mass, day } if sc.day(k) >= *day => {
-                    json!({"at": at, "mass_kg": mass})
-                }
-                _ => serde_json::Value::Null,
-            };
-            let truth = json!({
-                "schema": TRUTH_SCHEMA,
-                "structure": model.name,
-                "time": rfc3339(set.time),
-                "scenario": sc.name,
-                "set": k,
-                "temperature_c": sc.temperature(sc.day(k)),
-                "parameters": names,
-                "theta": theta,
-                "added_mass": added,
-            });
-            w.write(truth_topic, t, &serde_json::to_vec(&truth)?)
-        });
+    sc.generate(spec, |k, set, theta| {
+        let result = out.write_set(k, set, theta);
         pb.inc(1);
         if let Err(e) = result {
             error = Some(e);
@@ -272,19 +276,102 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
     })
     .map_err(|e| error.take().unwrap_or_else(|| e.into()))?;
     pb.finish_and_clear();
-    w.finish()?;
-    let bytes = std::fs::metadata(&args.out)?.len();
-    println!(
-        "scenario {}: {} sets over {} days of {} ({}), {:.1} MB -> {}",
-        sc.name,
-        sc.sets,
-        sc.days,
-        model.name,
-        describe(&sc, &model),
-        bytes as f64 / 1e6,
-        args.out.display()
-    );
+    out.w.finish()?;
     Ok(())
+}
+
+/// The recording being written, and what each set written to it needs.
+struct SetWriter<'a> {
+    args: &'a ScenarioArgs,
+    spec: &'a ModelSpec,
+    sc: &'a Scenario,
+    /// The structure's (the model's) name.
+    structure: &'a str,
+    /// The model's parameter names, for the truth.
+    names: Vec<&'a str>,
+    /// Topics of the sets (modal or accel), of the truth and of the environment readings.
+    topics: [&'a str; 3],
+    w: McapWriter,
+    /// Day of the next environment reading due.
+    next_reading: f64,
+}
+
+impl SetWriter<'_> {
+    /// Writes set `k`, simulated at θ = `theta`: the environment readings due by its day
+    /// (`--environment`, which also takes its temperature out), the set with its shapes
+    /// rounded (or its accel burst), then its truth.
+    fn write_set(&mut self, k: usize, mut set: ModalSet, theta: &[f64]) -> Result<()> {
+        let (args, sc) = (self.args, self.sc);
+        if args.shape_digits > 0 {
+            round_shapes(&mut set, args.shape_digits);
+        }
+        if args.environment {
+            set.temperature_c = None;
+        }
+        let t = to_ns(set.time)?;
+        if args.environment {
+            self.next_reading = write_readings(
+                &mut self.w,
+                self.topics[2],
+                sc,
+                self.structure,
+                self.next_reading,
+                sc.day(k),
+            )?;
+        }
+        match args.raw.accel {
+            None => self
+                .w
+                .write(self.topics[0], t, &serde_json::to_vec(&set.to_json())?)?,
+            Some(burst) => write_burst(
+                &mut self.w,
+                self.topics[0],
+                self.spec,
+                added_mass(sc, k),
+                theta,
+                set.time,
+                burst,
+                k,
+                args,
+            )?,
+        }
+        let added = match added_mass(sc, k) {
+            Some((at, mass)) => json!({"at": at, "mass_kg": mass}),
+            None => serde_json::Value::Null,
+        };
+        let truth = json!({
+            "schema": TRUTH_SCHEMA,
+            "structure": self.structure,
+            "time": rfc3339(set.time),
+            "scenario": sc.name,
+            "set": k,
+            "temperature_c": sc.temperature(sc.day(k)),
+            "parameters": self.names,
+            "theta": theta,
+            "added_mass": added,
+        });
+        self.w
+            .write(self.topics[1], t, &serde_json::to_vec(&truth)?)
+    }
+}
+
+/// Rounds every shape entry of `set` to `digits` significant digits.
+fn round_shapes(set: &mut ModalSet, digits: u32) {
+    for m in &mut set.modes {
+        if let Some(s) = &mut m.shape {
+            for v in s.iter_mut().flatten() {
+                *v = significant(*v, digits);
+            }
+        }
+    }
+}
+
+/// The mass fixed to the structure by set `k` (node, kg), if the event has added it.
+fn added_mass(sc: &Scenario, k: usize) -> Option<(&str, f64)> {
+    match &sc.event {
+        Event::Mass { at, mass, day } if sc.day(k) >= *day => Some((at.as_str(), *mass)),
+        _ => None,
+    }
 }
 
 /// The environment readings due from day `from` up to day `to`, one an hour on the hour;
@@ -435,6 +522,7 @@ fn write_burst(
     Ok(())
 }
 
+/// The scenario's event in words, for the summary line.
 fn describe(sc: &Scenario, model: &Model) -> String {
     let name = |l: usize| model.parameters()[l].name.clone();
     match &sc.event {

@@ -58,6 +58,8 @@ pub struct SweepArgs {
     pub out: PathBuf,
 }
 
+/// `boltwatch sweep-sigma`: the MAP at every σ_c of the grid, the automatic σ_c, and the
+/// study written (sweep.json, sweep.svg) and printed as a table.
 pub fn run_sweep(args: &SweepArgs) -> Result<()> {
     let Inputs {
         model,
@@ -88,11 +90,7 @@ pub fn run_sweep(args: &SweepArgs) -> Result<()> {
     };
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
-    let pb = ProgressBar::new(sigmas.len() as u64);
-    pb.set_style(
-        ProgressStyle::with_template("{bar:40} {pos}/{len} σ_c  {msg}  [{elapsed_precise}]")
-            .expect("static template"),
-    );
+    let pb = progress_bar(sigmas.len());
     let started = Instant::now();
     let points = sweep_sigma(&model, &data, &sigmas, &settings, &mut |_, p| {
         pb.set_message(format!("{:.3e}", p.sigma_c));
@@ -110,11 +108,47 @@ pub fn run_sweep(args: &SweepArgs) -> Result<()> {
     )?
     .misfit_dof();
     let auto = discrepancy_choice(&points, nu).expect("a sweep has at least two points");
-    let out = SweepDoc {
+    let out = sweep_doc(&model, truth.clone(), started, &auto, nu, &points);
+    write_json(&args.out.join("sweep.json"), &out)?;
+    let svg = figure_svg(&sweep_panels(&model, &points, truth.as_deref(), &auto), 2);
+    let svg_path = args.out.join("sweep.svg");
+    std::fs::write(&svg_path, svg)
+        .with_context(|| format!("cannot write {}", svg_path.display()))?;
+    print_sweep_table(&model, &points);
+    print_auto(&auto, nu);
+    println!(
+        "wrote {} and {}",
+        args.out.join("sweep.json").display(),
+        svg_path.display()
+    );
+    Ok(())
+}
+
+/// The progress bar of a sweep over `n` values of σ_c.
+fn progress_bar(n: usize) -> ProgressBar {
+    let pb = ProgressBar::new(n as u64);
+    pb.set_style(
+        ProgressStyle::with_template("{bar:40} {pos}/{len} σ_c  {msg}  [{elapsed_precise}]")
+            .expect("static template"),
+    );
+    pb
+}
+
+/// The sweep as its JSON document: the model, the automatic σ_c (held to ν = `nu`), and
+/// every point; the time taken counted from `started`.
+fn sweep_doc(
+    model: &Model,
+    truth: Option<Vec<f64>>,
+    started: Instant,
+    auto: &AutoSigma,
+    nu: f64,
+    points: &[SweepPoint],
+) -> SweepDoc {
+    SweepDoc {
         schema: Schema::new(),
         model: model.name.clone(),
         parameters: model.parameters().iter().map(|p| p.name.clone()).collect(),
-        truth: truth.clone(),
+        truth,
         seconds: started.elapsed().as_secs_f64(),
         auto: SweepAuto {
             rule: "smallest σ_c at which e_Mᵀ Σ_M⁻¹ e_M ≤ ν = N_data − N_θ − N_m (discrepancy principle), interpolated on the grid".into(),
@@ -122,38 +156,38 @@ pub fn run_sweep(args: &SweepArgs) -> Result<()> {
             nu,
             met: auto.met,
         },
-        points: points
-            .iter()
-            .map(|p| SweepPointDoc {
-                sigma_c: p.sigma_c,
-                theta: p.theta.clone(),
-                most_probable_lambda: p.lambda.clone(),
-                J_p: p.terms.total,
-                measurement_misfit: p.terms.measurement,
-                modelling_error: p.terms.modelling,
-                prior_term: p.terms.prior,
-                epsilon: p.epsilon,
-                mac_most_probable_to_measured: p.mac.clone(),
-                newton: NewtonRun {
-                    iterations: p.iterations,
-                    converged: p.converged,
-                    continuation: stage_docs(&p.stages),
-                },
-                alternating: p.alternating.as_ref().map(|a| AlternatingDoc {
-                    iterations: a.iterations,
-                    converged: a.converged,
-                    theta: a.theta.clone(),
-                    J_p: a.total,
-                }),
-            })
-            .collect(),
-    };
-    write_json(&args.out.join("sweep.json"), &out)?;
-    let svg = figure_svg(&sweep_panels(&model, &points, truth.as_deref(), &auto), 2);
-    let svg_path = args.out.join("sweep.svg");
-    std::fs::write(&svg_path, svg)
-        .with_context(|| format!("cannot write {}", svg_path.display()))?;
-    print_sweep_table(&model, &points);
+        points: points.iter().map(point_doc).collect(),
+    }
+}
+
+/// One point of the sweep as its JSON document.
+fn point_doc(p: &SweepPoint) -> SweepPointDoc {
+    SweepPointDoc {
+        sigma_c: p.sigma_c,
+        theta: p.theta.clone(),
+        most_probable_lambda: p.lambda.clone(),
+        J_p: p.terms.total,
+        measurement_misfit: p.terms.measurement,
+        modelling_error: p.terms.modelling,
+        prior_term: p.terms.prior,
+        epsilon: p.epsilon,
+        mac_most_probable_to_measured: p.mac.clone(),
+        newton: NewtonRun {
+            iterations: p.iterations,
+            converged: p.converged,
+            continuation: stage_docs(&p.stages),
+        },
+        alternating: p.alternating.as_ref().map(|a| AlternatingDoc {
+            iterations: a.iterations,
+            converged: a.converged,
+            theta: a.theta.clone(),
+            J_p: a.total,
+        }),
+    }
+}
+
+/// The automatic σ_c, and whether the misfit came down to ν = `nu` within the range.
+fn print_auto(auto: &AutoSigma, nu: f64) {
     println!(
         "automatic σ_c (discrepancy rule, ν = {nu}): {:.4e}{}",
         auto.sigma_c,
@@ -163,14 +197,10 @@ pub fn run_sweep(args: &SweepArgs) -> Result<()> {
             " — misfit still above ν at the top of the range"
         }
     );
-    println!(
-        "wrote {} and {}",
-        args.out.join("sweep.json").display(),
-        svg_path.display()
-    );
-    Ok(())
 }
 
+/// The sweep as a table: the error terms, ε, least MAC, the first θ and the iterations
+/// per σ_c.
 fn print_sweep_table(model: &Model, points: &[SweepPoint]) {
     let p = model.n_params().min(4);
     print!(
@@ -200,6 +230,9 @@ fn print_sweep_table(model: &Model, points: &[SweepPoint]) {
     }
 }
 
+/// The panels of the study against σ_c (paper Figs. 5, 7, 15, 18), the automatic σ_c
+/// marked on each: θ, the two error terms, ε, iterations, MAC, and with `truth` the error
+/// of θ.
 fn sweep_panels(
     model: &Model,
     points: &[SweepPoint],
@@ -208,18 +241,50 @@ fn sweep_panels(
 ) -> Vec<Panel> {
     let x: Vec<f64> = points.iter().map(|p| p.sigma_c).collect();
     let mark = vec![(auto.sigma_c, "auto σ_c".to_string())];
+    let mut panels = vec![
+        theta_panel(model, points, truth, &x, &mark),
+        errors_panel(points, auto, &x, &mark),
+        epsilon_panel(points, &x, &mark),
+        iterations_panel(points, &x),
+        mac_panel(points, &x),
+    ];
+    if let Some(t) = truth {
+        panels.push(theta_error_panel(points, t, &x, mark));
+    }
+    panels
+}
+
+/// (a) The MAP θ, a line per parameter, with the exact θ when known.
+fn theta_panel(
+    model: &Model,
+    points: &[SweepPoint],
+    truth: Option<&[f64]>,
+    x: &[f64],
+    mark: &[(f64, String)],
+) -> Panel {
     let mut theta = Panel::new("(a) MAP θ", "σ_c", "θ", Scale::Log, Scale::Linear);
     for (l, par) in model.parameters().iter().enumerate() {
         theta.series.push(Series::line(
             par.name.clone(),
-            x.clone(),
+            x.to_vec(),
             points.iter().map(|p| p.theta[l]).collect(),
         ));
         if let Some(t) = truth {
             theta.hlines.push((t[l], format!("exact {}", par.name)));
         }
     }
-    theta.vlines = mark.clone();
+    theta.vlines = mark.to_vec();
+    theta
+}
+
+/// (b) The modelling error e_Cᵀe_C and the measurement misfit e_Mᵀ Σ_M⁻¹ e_M, with the
+/// target ν of the automatic σ_c.
+fn errors_panel(
+    points: &[SweepPoint],
+    auto: &AutoSigma,
+    x: &[f64],
+    mark: &[(f64, String)],
+) -> Panel {
     let mut errors = Panel::new(
         "(b) modelling and measurement error",
         "σ_c",
@@ -229,18 +294,23 @@ fn sweep_panels(
     );
     errors.series.push(Series::line(
         "e_Cᵀe_C",
-        x.clone(),
+        x.to_vec(),
         points.iter().map(|p| p.terms.modelling).collect(),
     ));
     errors.series.push(Series::line(
         "e_Mᵀ Σ_M⁻¹ e_M",
-        x.clone(),
+        x.to_vec(),
         points.iter().map(|p| p.terms.measurement).collect(),
     ));
     errors
         .hlines
         .push((auto.target, format!("ν = {}", auto.target)));
-    errors.vlines = mark.clone();
+    errors.vlines = mark.to_vec();
+    errors
+}
+
+/// (c) ε (5) of the model at the MAP θ.
+fn epsilon_panel(points: &[SweepPoint], x: &[f64], mark: &[(f64, String)]) -> Panel {
     let mut eps = Panel::new(
         "(c) ε (5) of the model at the MAP θ",
         "σ_c",
@@ -250,10 +320,15 @@ fn sweep_panels(
     );
     eps.series.push(Series::line(
         "ε",
-        x.clone(),
+        x.to_vec(),
         points.iter().map(|p| p.epsilon).collect(),
     ));
-    eps.vlines = mark.clone();
+    eps.vlines = mark.to_vec();
+    eps
+}
+
+/// (d) Iterations to the MAP: Newton's, and the alternating solver's when it ran.
+fn iterations_panel(points: &[SweepPoint], x: &[f64]) -> Panel {
     let mut iters = Panel::new(
         "(d) iterations to the MAP",
         "σ_c",
@@ -263,13 +338,13 @@ fn sweep_panels(
     );
     iters.series.push(Series::line(
         "Newton (reduced)",
-        x.clone(),
+        x.to_vec(),
         points.iter().map(|p| p.iterations as f64).collect(),
     ));
     if points.iter().any(|p| p.alternating.is_some()) {
         iters.series.push(Series::line(
             "alternating (21)–(23)",
-            x.clone(),
+            x.to_vec(),
             points
                 .iter()
                 .map(|p| {
@@ -280,6 +355,11 @@ fn sweep_panels(
                 .collect(),
         ));
     }
+    iters
+}
+
+/// (e) MAC of each most probable shape to the measured one, a line per mode.
+fn mac_panel(points: &[SweepPoint], x: &[f64]) -> Panel {
     let mut mac = Panel::new(
         "(e) MAC of most probable to measured shapes",
         "σ_c",
@@ -291,35 +371,41 @@ fn sweep_panels(
     for m in 0..nm {
         mac.series.push(Series::line(
             format!("mode {}", m + 1),
-            x.clone(),
+            x.to_vec(),
             points.iter().map(|p| p.mac[m]).collect(),
         ));
     }
-    let mut panels = vec![theta, errors, eps, iters, mac];
-    if let Some(t) = truth {
-        let mut err = Panel::new(
-            "(f) max relative error of θ",
-            "σ_c",
-            "max |θ − θ_exact| / θ_exact",
-            Scale::Log,
-            Scale::Log,
-        );
-        err.series.push(Series::line(
-            "max rel. error",
-            x.clone(),
-            points
-                .iter()
-                .map(|p| {
-                    p.theta
-                        .iter()
-                        .zip(t)
-                        .map(|(a, b)| ((a - b) / b).abs())
-                        .fold(0.0, f64::max)
-                })
-                .collect(),
-        ));
-        err.vlines = mark;
-        panels.push(err);
-    }
-    panels
+    mac
+}
+
+/// (f) The largest relative error of θ against the exact θ `t`.
+fn theta_error_panel(
+    points: &[SweepPoint],
+    t: &[f64],
+    x: &[f64],
+    mark: Vec<(f64, String)>,
+) -> Panel {
+    let mut err = Panel::new(
+        "(f) max relative error of θ",
+        "σ_c",
+        "max |θ − θ_exact| / θ_exact",
+        Scale::Log,
+        Scale::Log,
+    );
+    err.series.push(Series::line(
+        "max rel. error",
+        x.to_vec(),
+        points
+            .iter()
+            .map(|p| {
+                p.theta
+                    .iter()
+                    .zip(t)
+                    .map(|(a, b)| ((a - b) / b).abs())
+                    .fold(0.0, f64::max)
+            })
+            .collect(),
+    ));
+    err.vlines = mark;
+    err
 }

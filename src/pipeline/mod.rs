@@ -29,11 +29,13 @@ use crate::contract::{Checkpoint, EigenBlock, Output, Rejected, Schema, digest};
 use crate::core::model::{Model, ParameterKind};
 use crate::core::stats::chi2_bound;
 use crate::core::updating::data::RawMode;
+use crate::core::updating::plausibility::EigenRange;
+use crate::core::updating::residual::candidate_count;
 use crate::core::updating::strategy::rescale_reason;
 use crate::core::updating::variance::MAX_OUTER;
 use crate::core::updating::{
-    Evaluator, FinalStep, MeasuredData, ModeMatching, ModeMatchingOptions, ModeMatchingResult,
-    UpdateError,
+    Evaluator, FinalStep, LogBounds, MeasuredData, ModeMatching, ModeMatchingOptions,
+    ModeMatchingResult, UpdateError,
 };
 use alerts::{InadequacyState, LooseningState};
 pub use config::{PairingRule, TrackerConfig, TrackerError, Weights};
@@ -177,6 +179,9 @@ pub struct Tracker {
     channel_names: Vec<String>,
     /// How far ahead of its reception a set may be stamped (live only).
     max_future: Option<chrono::TimeDelta>,
+    /// The model's eigenvalue range over the bounds, for the lowest `.0` modes, computed at
+    /// the first set that needs it (`None` inside: no range claimed).
+    eigen_range: Option<(usize, Option<EigenRange>)>,
 }
 
 impl Tracker {
@@ -286,7 +291,23 @@ impl Tracker {
             k_nominal,
             channel_names: model_channel_names,
             max_future: None,
+            eigen_range: None,
         })
+    }
+
+    /// Why a set's frequencies cannot come from the model within its bounds, before any
+    /// fit ([`EigenRange`]: two eigen solves once, then a comparison per set).
+    fn implausible(&mut self, data: &MeasuredData) -> Option<String> {
+        let n =
+            candidate_count(data.modes.len(), self.model.n_dof()).min(self.model.n_finite_modes());
+        if self.eigen_range.as_ref().is_none_or(|(have, _)| *have < n) {
+            let bounds = LogBounds::new(&self.model, self.opts.bounds);
+            // A failed solve claims no range: the fit then reports what went wrong.
+            let range = EigenRange::new(&self.model, &bounds, n).ok().flatten();
+            self.eigen_range = Some((n, range));
+        }
+        let (_, range) = self.eigen_range.as_ref()?;
+        range.as_ref()?.implausible(data, n)
     }
 
     /// Rejects sets stamped more than `limit` after their reception (the live daemon's

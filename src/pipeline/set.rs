@@ -68,6 +68,9 @@ impl Tracker {
         payload: &[u8],
     ) -> Vec<Action> {
         let data = measured_data(&set, &self.model, self.cfg.shape_weight);
+        if let Some(why) = self.implausible(&data) {
+            return self.reject(received, &rejection(why), payload);
+        }
         let fit = match self.fit(&data) {
             Ok(x) => x,
             // The model could not be evaluated for this set (e.g. more modes than the model

@@ -219,7 +219,10 @@ fn every_command_option_is_documented_with_its_default() {
                     (Ok(x), Ok(y)) => x == y,
                     _ => c == d,
                 };
-                assert!(same, "{command} --{name}: documented default {c}, --help {d}");
+                assert!(
+                    same,
+                    "{command} --{name}: documented default {c}, --help {d}"
+                );
             }
         }
         for name in docs.keys() {
@@ -229,4 +232,67 @@ fn every_command_option_is_documented_with_its_default() {
             );
         }
     }
+}
+
+/// The items a code span names: `a::b::C::{f, g}` → `f`, `g`; `a::b::f` → `f`.
+fn named_items(span: &str) -> Vec<String> {
+    let ident = |s: &str| -> String {
+        s.trim()
+            .chars()
+            .take_while(|c| c.is_alphanumeric() || *c == '_')
+            .collect()
+    };
+    if let Some((_, group)) = span.split_once("::{") {
+        return group.trim_end_matches('}').split(',').map(ident).collect();
+    }
+    vec![ident(span.rsplit("::").next().unwrap())]
+}
+
+/// `docs/paper.md` maps each equation to the functions that implement it and their files:
+/// every file exists, and every item named (`a::b::f`, `Type::{f, g}`) is defined
+/// (`fn`, `struct`, `enum`, `trait`, `type` or `const`) in one of the row's files.
+#[test]
+fn every_function_the_paper_map_names_is_in_its_file() {
+    let mut checked = 0;
+    for line in read("docs/paper.md").lines() {
+        if !line.starts_with('|') || !line.contains("`src/") {
+            continue;
+        }
+        let c = cells(line);
+        let files: Vec<String> = c[3]
+            .split('`')
+            .filter(|p| p.starts_with("src/"))
+            .map(|p| {
+                std::fs::read_to_string(format!("{ROOT}/{p}"))
+                    .unwrap_or_else(|_| panic!("docs/paper.md names {p}, which does not exist"))
+            })
+            .collect();
+        for span in c[2].split('`').skip(1).step_by(2) {
+            if !span.contains("::") || span.contains(' ') {
+                continue;
+            }
+            for item in named_items(span) {
+                let defined = ["fn", "struct", "enum", "trait", "type", "const"]
+                    .iter()
+                    .any(|kw| {
+                        files.iter().any(|f| {
+                            f.contains(&format!("{kw} {item}("))
+                                || f.contains(&format!("{kw} {item} "))
+                                || f.contains(&format!("{kw} {item}<"))
+                                || f.contains(&format!("{kw} {item}:"))
+                        })
+                    });
+                assert!(
+                    defined,
+                    "docs/paper.md: `{span}` names `{item}`, not defined in {}",
+                    c[3]
+                );
+                checked += 1;
+            }
+        }
+    }
+    assert!(
+        checked > 30,
+        "only {checked} items checked: is the table still read?"
+    );
 }

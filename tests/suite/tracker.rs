@@ -401,6 +401,16 @@ fn bad_payloads(base: &[Value], earlier: &Value) -> Vec<(Vec<u8>, &'static str)>
             "modes[1].shape_nsd",
         ),
         (with(&|v| v["structure"] = "bridge-7".into()), "structure"),
+        // Valid, but every frequency ×1/1000 (a unit slip): refused by the model's range
+        // before any fit.
+        (
+            with(&|v| {
+                for m in v["modes"].as_array_mut().unwrap() {
+                    m["frequency_hz"] = (m["frequency_hz"].as_f64().unwrap() / 1000.0).into();
+                }
+            }),
+            "modes",
+        ),
         // Earlier than the last accepted set (and not a re-delivery of it: another
         // temperature, so other bytes).
         (

@@ -25,13 +25,17 @@
 //!    the workflow stops when nothing is significant.
 
 pub mod description;
+mod effect_traits;
 pub mod effects;
+mod file_effects;
 mod fit;
 pub mod injection;
+mod matrix_effects;
 mod refit;
 mod screen;
 mod search;
 mod space;
+mod workflow;
 
 use faer::Mat;
 
@@ -48,6 +52,7 @@ use fit::{build, fit, localize, profile_point};
 use refit::{effect_of, map_with_progress, refit, reprofile, with_effects};
 use screen::{candidates_of, screen};
 use search::minimize_1d;
+use workflow::{Enriched, Workflow};
 
 /// Failures of a diagnosis.
 #[derive(Debug, thiserror::Error)]
@@ -196,190 +201,48 @@ pub fn diagnose(
     opts: &DiagnosisOptions,
     mut progress: impl FnMut(&str, usize, usize),
 ) -> Result<Diagnosis, DiagnosisError> {
+    // Step 1: fit the model class as it is (globalized) and localize the disagreement.
     let effects = effects::catalogue();
     let nominal = build(spec, || "no effect added".into())?;
-    let mut f = fit(spec, data, &nominal.nominal_theta(), true)?;
+    let f = fit(spec, data, &nominal.nominal_theta(), true)?;
     let before = localize(&f.model, data, &f.result.last);
     let n_candidates = candidates_of(&effects, spec, &[]).len();
-    let threshold = chi2_1_upper_quantile(opts.alpha / n_candidates.max(1) as f64);
-    let n_data = data.n_data() as f64;
-    let mut named: Vec<Named> = Vec::new();
+    let w = Workflow {
+        spec,
+        data,
+        opts,
+        threshold: chi2_1_upper_quantile(opts.alpha / n_candidates.max(1) as f64),
+        n_data: data.n_data() as f64,
+        effects,
+    };
+    let mut model = Enriched {
+        named: Vec::new(),
+        current: spec.clone(),
+        f,
+    };
+    // Steps 2–5, round by round, until nothing more is significant or enough is named.
     let mut rounds = Vec::new();
-    let mut current = spec.clone();
     loop {
-        let base = f.result.last.clone();
-        let mut ev = Evaluator::new(&f.model)?;
-        let j = ev.jacobian(&f.model, data, &base)?;
-        let q = j.qr().compute_thin_Q();
-        let cands = candidates_of(&effects, &current, &named);
-        let total = cands.len();
-        let mut screened: Vec<Candidate> = map_with_progress(
-            &cands,
-            |(e, l)| screen(&current, *e, l, data, &base, &q),
-            |done| progress("screening", done, total),
-        )
-        .into_iter()
-        .flatten()
-        .collect();
-        screened.sort_by(|a, b| b.score.total_cmp(&a.score));
-        // The best few by score, and the best of each effect type: the score is a first-order
-        // measure and underrates effects whose modal signature is strongly nonlinear in
-        // their size (a member losing half its stiffness).
-        let mut best: Vec<&Candidate> = screened
-            .iter()
-            .filter(|c| c.score > 0.0)
-            .take(opts.refits)
-            .collect();
-        for e in &effects {
-            if let Some(c) = screened
-                .iter()
-                .find(|c| c.effect == e.kind() && c.score > 0.0)
-                && !best.iter().any(|b| std::ptr::eq(*b, c))
-            {
-                best.push(c);
-            }
-        }
-        let mut refits: Vec<Refit> = map_with_progress(
-            &best,
-            |c| {
-                refit(
-                    &current,
-                    effect_of(&effects, c.effect),
-                    c,
-                    data,
-                    &base.theta,
-                )
-            },
-            |done| progress("refitting", done, best.len()),
-        )
-        .into_iter()
-        .flatten()
-        .collect();
-        refits.sort_by(|a, b| a.epsilon.total_cmp(&b.epsilon));
-        let eps_before = f.result.epsilon();
-        let winner = refits.first().and_then(|r| {
-            let lr = eps_before - r.epsilon;
-            (lr > threshold).then(|| Named {
-                refit: r.clone(),
-                epsilon_before: eps_before,
-                likelihood_ratio: lr,
-                threshold,
-                log_bayes_factor: lr / 2.0 - 0.5 * n_data.ln(),
-                indistinguishable_from: refits[1..]
-                    .iter()
-                    .filter(|o| o.epsilon - r.epsilon < INDISTINGUISHABLE)
-                    .cloned()
-                    .collect(),
-            })
-        });
-        let mut round = Round {
-            epsilon: eps_before,
-            candidates: screened,
-            refits,
-            named: winner.clone(),
-            withdrawn: Vec::new(),
-        };
-        let Some(w) = winner else {
-            rounds.push(round);
-            break;
-        };
-        let theta = w.refit.theta.clone();
-        named.push(w);
-        // Backward elimination: an earlier effect that no longer passes the test with the
-        // new one in the model stood in for it; withdraw it. The test of each refits the
-        // values of the others without it (they were fitted with it present).
-        loop {
-            let refs: Vec<&Refit> = named.iter().map(|n| &n.refit).collect();
-            current = with_effects(spec, &effects, &refs)?;
-            f = fit(&current, data, &theta, false)?;
-            let mut weakest: Option<(usize, f64, Vec<Refit>)> = None;
-            for i in 0..named.len().saturating_sub(1) {
-                let mut others: Vec<Refit> = named
-                    .iter()
-                    .enumerate()
-                    .filter(|&(k, _)| k != i)
-                    .map(|(_, n)| n.refit.clone())
-                    .collect();
-                // An effect another one depends on (a splice whose node carries a named
-                // mass) is not withdrawn alone.
-                let eps_without = match reprofile(spec, &effects, &mut others, data, &theta) {
-                    Ok((e, _)) => e,
-                    Err(DiagnosisError::Location(_)) => continue,
-                    Err(e) => return Err(e),
-                };
-                let lr = eps_without - f.result.epsilon();
-                if lr <= threshold && weakest.as_ref().is_none_or(|w| lr < w.1) {
-                    weakest = Some((i, lr, others));
-                }
-            }
-            let Some((i, lr, others)) = weakest else {
-                break;
-            };
-            let gone = named.remove(i);
-            for (n, r) in named.iter_mut().zip(others) {
-                n.refit = r;
-            }
-            round.withdrawn.push(Withdrawn {
-                effect: gone.refit.effect,
-                location: gone.refit.location.clone(),
-                likelihood_ratio: lr,
-            });
-        }
+        let round = w.round(&mut model, &mut progress)?;
+        let done = round.named.is_none() || model.named.len() >= opts.max_effects;
         rounds.push(round);
-        if named.len() >= opts.max_effects {
+        if done {
             break;
         }
     }
-    // With several effects named, each value was fitted with the later ones still missing:
-    // refit each with the others at their values.
-    if named.len() > 1 {
-        let mut set: Vec<Refit> = named.iter().map(|n| n.refit.clone()).collect();
-        let (eps, theta) = reprofile(spec, &effects, &mut set, data, &f.result.theta)?;
-        if eps <= f.result.epsilon() {
-            for (n, r) in named.iter_mut().zip(set) {
-                n.refit = r;
-            }
-            let refs: Vec<&Refit> = named.iter().map(|n| &n.refit).collect();
-            current = with_effects(spec, &effects, &refs)?;
-            f = fit(&current, data, &theta, false)?;
-        }
-    }
-    let after = localize(&f.model, data, &f.result.last);
-    // After a withdrawal, the evidence of what remains is recomputed against the model
-    // without it (with the other remaining effects refitted).
+    w.refit_jointly(&mut model)?;
+    let after = localize(&model.f.model, data, &model.f.result.last);
     if rounds.iter().any(|r| !r.withdrawn.is_empty()) {
-        for i in 0..named.len() {
-            let eps_without = if named.len() == 1 {
-                before.epsilon
-            } else {
-                let mut others: Vec<Refit> = named
-                    .iter()
-                    .enumerate()
-                    .filter(|&(k, _)| k != i)
-                    .map(|(_, n)| n.refit.clone())
-                    .collect();
-                match reprofile(spec, &effects, &mut others, data, &f.result.theta) {
-                    Ok((e, _)) => e,
-                    // The others need it (as above): its evidence stays as named.
-                    Err(DiagnosisError::Location(_)) => continue,
-                    Err(e) => return Err(e),
-                }
-            };
-            let lr = eps_without - after.epsilon;
-            let n = &mut named[i];
-            n.epsilon_before = eps_without;
-            n.likelihood_ratio = lr;
-            n.log_bayes_factor = lr / 2.0 - 0.5 * n_data.ln();
-        }
+        w.reassess(&mut model, &before, &after)?;
     }
     Ok(Diagnosis {
         before,
         after,
-        named,
+        named: model.named,
         rounds,
         n_candidates,
-        threshold,
+        threshold: w.threshold,
         alpha: opts.alpha,
-        enriched: current,
+        enriched: model.current,
     })
 }

@@ -8,15 +8,18 @@
 //! element contributes `Lᵀ k_e L`.
 
 mod assemble;
+mod assemble_check;
 pub mod element;
 mod finish;
 pub mod frame3d;
 pub mod hex20;
 pub mod import;
+mod matrix_market;
 pub mod mesh;
 pub mod solid;
 mod solid_element;
 pub mod space;
+mod space_check;
 pub mod sparse;
 pub mod spec;
 

@@ -31,6 +31,8 @@ use std::collections::HashMap;
 use nalgebra::{Matrix3, Vector3};
 
 use super::frame3d::{Section3, default_reference, global_geometric, global_matrices, local_axes};
+pub use super::space_check::DOF_NAMES;
+use super::space_check::{check, dof_index, fixed_dofs, invalid, node_index, restrained_dofs};
 use super::sparse::{Csc, csc_from_triplets};
 pub use super::spec::{
     AXES, Connection3, Joint3, Mass3, Material3, Member3, Node3, SectionSpec3, SpaceFrameSpec,
@@ -38,16 +40,6 @@ pub use super::spec::{
 };
 use super::spec::{BayesSpec, ParameterSpec};
 use super::{Channel, Connection, Model, ModelError, Parameter, ParameterKind};
-
-/// The DOF names of a node, in order.
-pub const DOF_NAMES: [&str; 6] = ["x", "y", "z", "rx", "ry", "rz"];
-
-fn invalid(field: impl Into<String>, reason: impl Into<String>) -> ModelError {
-    ModelError::Invalid {
-        field: field.into(),
-        reason: reason.into(),
-    }
-}
 
 /// A DOF of the model as a combination of numbered DOFs (empty: fixed).
 type Combo = Vec<(usize, f64)>;
@@ -97,14 +89,6 @@ fn add_scaled(c: &mut Combo, other: &[(usize, f64)], w: f64) {
     }
 }
 
-/// The index of a DOF name (`x` … `rz`).
-fn dof_index(field: &str, d: &str) -> Result<usize, ModelError> {
-    DOF_NAMES
-        .iter()
-        .position(|x| *x == d)
-        .ok_or_else(|| invalid(field, format!("unknown DOF `{d}` (x, y, z, rx, ry, rz)")))
-}
-
 /// Checks and assembles a `[space_frame]` model, primally (paper (2)–(4)): the entries'
 /// references, the fixed DOFs, the nodes' DOFs, each member (mesh, end kinematics, element
 /// matrices), the bolted connections' springs, the joint and lumped masses, the discrete
@@ -135,18 +119,6 @@ pub fn assemble(name: &str, s: &SpaceFrameSpec, bayesian: &BayesSpec) -> Result<
     )
 }
 
-/// The index of node `n`.
-fn node_index(s: &SpaceFrameSpec, n: &str, field: &str) -> Result<usize, ModelError> {
-    s.nodes
-        .iter()
-        .position(|x| x.name == n)
-        .ok_or_else(|| ModelError::Unknown {
-            field: field.to_string(),
-            what: "node",
-            name: n.to_string(),
-        })
-}
-
 /// The matrix an item's stiffness goes to: `K_l` (slot `l`, from 1) for the parameter
 /// listing it in `list`, K0 (slot 0) for none.
 fn slot_of(s: &SpaceFrameSpec, item: &str, list: fn(&ParameterSpec) -> &Vec<String>) -> usize {
@@ -154,33 +126,6 @@ fn slot_of(s: &SpaceFrameSpec, item: &str, list: fn(&ParameterSpec) -> &Vec<Stri
         .iter()
         .position(|q| list(q).iter().any(|x| x == item))
         .map_or(0, |l| l + 1)
-}
-
-/// The DOFs fixed at every node and mesh node (`restrain`).
-fn restrained_dofs(s: &SpaceFrameSpec) -> Result<[bool; 6], ModelError> {
-    let mut restrained = [false; 6];
-    for d in &s.restrain {
-        restrained[dof_index("restrain", d)?] = true;
-    }
-    Ok(restrained)
-}
-
-/// The fixed DOFs of each node: the restrained ones, and its support's (all six unless it
-/// lists them in `fix`).
-fn fixed_dofs(s: &SpaceFrameSpec, restrained: [bool; 6]) -> Result<Vec<[bool; 6]>, ModelError> {
-    let mut fixed = vec![restrained; s.nodes.len()];
-    for sup in &s.supports {
-        let k = node_index(s, &sup.node, "supports.node")?;
-        match &sup.fix {
-            None => fixed[k] = [true; 6],
-            Some(list) => {
-                for d in list {
-                    fixed[k][dof_index(&format!("supports.{}.fix", sup.node), d)?] = true;
-                }
-            }
-        }
-    }
-    Ok(fixed)
 }
 
 /// A node's DOFs as combinations (empty where fixed).
@@ -625,117 +570,4 @@ fn parameters_of(s: &SpaceFrameSpec, connections: &[Connection]) -> Vec<Paramete
             },
         })
         .collect()
-}
-
-/// The references between the entries: names unique, every connection on an existing
-/// member end with at least one spring, every parameter naming existing connection axes or
-/// members, each in one parameter at most.
-fn check(s: &SpaceFrameSpec) -> Result<(), ModelError> {
-    fn unique<'a>(
-        what: &'static str,
-        names: impl Iterator<Item = &'a str>,
-    ) -> Result<(), ModelError> {
-        let mut seen = std::collections::HashSet::new();
-        for n in names {
-            if !seen.insert(n) {
-                return Err(ModelError::Duplicate {
-                    what,
-                    name: n.to_string(),
-                });
-            }
-        }
-        Ok(())
-    }
-    unique("node", s.nodes.iter().map(|n| n.name.as_str()))?;
-    unique("member", s.members.iter().map(|m| m.name.as_str()))?;
-    unique("material", s.materials.iter().map(|m| m.name.as_str()))?;
-    unique("section", s.sections.iter().map(|m| m.name.as_str()))?;
-    unique("parameter", s.parameters.iter().map(|m| m.name.as_str()))?;
-    unique("channel", s.channels.iter().map(|m| m.name.as_str()))?;
-    unique("spring", s.springs.iter().map(|m| m.name.as_str()))?;
-    unique(
-        "connection at member end",
-        s.connections
-            .iter()
-            .map(|c| format!("{}@{}", c.member, c.node))
-            .collect::<Vec<_>>()
-            .iter()
-            .map(String::as_str),
-    )?;
-    let mut axes = Vec::new();
-    for c in &s.connections {
-        let field = format!("connections.{}", c.name());
-        let m = s
-            .members
-            .iter()
-            .find(|m| m.name == c.member)
-            .ok_or_else(|| ModelError::Unknown {
-                field: field.clone(),
-                what: "member",
-                name: c.member.clone(),
-            })?;
-        if m.from != c.node && m.to != c.node {
-            return Err(invalid(
-                field,
-                format!("member {} has no end at {}", m.name, c.node),
-            ));
-        }
-        if c.axes().next().is_none() {
-            return Err(invalid(
-                field,
-                "no spring (give torsion, weak and/or strong)",
-            ));
-        }
-        for (axis, k) in c.axes() {
-            super::finish::check_positive(format!("connections.{axis}"), k)?;
-            axes.push(axis);
-        }
-    }
-    unique("connection", axes.iter().map(String::as_str))?;
-    let mut used = std::collections::HashSet::new();
-    for q in &s.parameters {
-        let field = format!("parameters.{}", q.name);
-        let lists = [&q.connections, &q.members, &q.springs];
-        if lists.iter().filter(|l| !l.is_empty()).count() != 1 {
-            return Err(invalid(
-                field,
-                "give one list: connections (`<member>@<node>.<axis>`), members or springs",
-            ));
-        }
-        let known: [(&Vec<String>, &'static str, Vec<&str>); 3] = [
-            (
-                &q.connections,
-                "connection axis",
-                axes.iter().map(String::as_str).collect(),
-            ),
-            (
-                &q.members,
-                "member",
-                s.members.iter().map(|x| x.name.as_str()).collect(),
-            ),
-            (
-                &q.springs,
-                "spring",
-                s.springs.iter().map(|x| x.name.as_str()).collect(),
-            ),
-        ];
-        for (list, what, names) in known {
-            if let Some(e) = list.iter().find(|e| !names.contains(&e.as_str())) {
-                return Err(ModelError::Unknown {
-                    field: field.clone(),
-                    what,
-                    name: e.clone(),
-                });
-            }
-        }
-        for e in lists.into_iter().flatten() {
-            if !used.insert(e.as_str()) {
-                return Err(invalid(
-                    field,
-                    format!("`{e}` is scaled by another parameter too"),
-                ));
-            }
-        }
-    }
-    Ok(())
 }

@@ -6,6 +6,7 @@ pub mod bounds;
 pub mod data;
 pub mod globalize;
 pub mod mode_matching;
+pub mod plausibility;
 pub mod residual;
 pub mod search;
 pub mod strategy;

@@ -19,14 +19,26 @@
 //! Pairing (29), or by least misfit ([`super::Pairing`]), is redone at every evaluation,
 //! so ε(θ) is piecewise smooth; a trial is accepted only if ε decreases.
 
-use faer::linalg::solvers::{Llt, Solve};
+mod gauss_newton;
+mod types;
+
+use faer::linalg::solvers::Solve;
 use faer::{Mat, Side};
 
 use super::UpdateError;
-use super::bounds::{AtBound, LogBounds};
-use super::data::{MeasuredData, Weighting};
+use super::bounds::LogBounds;
+use super::data::MeasuredData;
 use super::residual::{Evaluation, Evaluator};
 use crate::core::model::Model;
+pub use gauss_newton::FirstOrder;
+use gauss_newton::{
+    FreeStep, clipped, covariance_from_jacobian, free_gauss_newton, gauss_newton_step,
+    normal_equations, within_std,
+};
+pub use types::{
+    FinalStep, IterationRecord, ModeMatchingOptions, ModeMatchingResult, ProgressFn, StepControl,
+    Termination,
+};
 
 /// Largest change of ln θ_i in one Levenberg–Marquardt step (a factor e² ≈ 7.4): a safety cap
 /// on top of the damping, so one wild linearization cannot send θ to 1e±30.
@@ -49,143 +61,6 @@ const EPS_RESOLUTION: f64 = 1e-10;
 /// rounding in its 7th digit), set 79: ε = 165.9039 after 4 iterations, every damped step
 /// rejected.
 const STALL_WITHIN_STD: f64 = 0.01;
-
-/// How each step is chosen.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum StepControl {
-    /// Levenberg–Marquardt in ln θ (default).
-    LevenbergMarquardt,
-    /// Paper (20): θ_{k+1} = θ_k + κ Δθ_k with the Gauss–Newton step (19).
-    FixedKappa(f64),
-}
-
-/// Options of [`ModeMatching`].
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct ModeMatchingOptions {
-    pub step: StepControl,
-    /// Stop when every |Δθ_i|/θ_i is below this (paper: 1e-5).
-    pub tol: f64,
-    pub max_iterations: usize,
-    /// Levenberg–Marquardt: what to do with the undamped step that passed the stopping
-    /// test.
-    pub final_step: FinalStep,
-    /// Also stop when every undamped step `|Δ ln θ_i|` is below this many standard
-    /// deviations of `ln θ_i` by (15) at the current θ: the remaining change is then
-    /// negligible against the estimate's own uncertainty, whatever its relative size. For
-    /// trackers, whose estimate of every set is only known to its std.
-    pub sigma_tol: Option<f64>,
-    /// Also stop when the undamped step's predicted decrease of ε, `−δᵀg` (the
-    /// Gauss–Newton model's distance to its minimum), is below this: ε is then known to
-    /// that accuracy, which is all a profile of ε needs, while θ may still creep along a
-    /// flat valley for dozens of iterations.
-    pub eps_tol: Option<f64>,
-    /// Levenberg–Marquardt: keep every θ_i within `[lo, hi] ×` its nominal value. A
-    /// parameter the data cannot pin down (a connection already far stiffer than what the
-    /// measured modes load) otherwise runs off towards 0 or ∞ while ε barely changes, and
-    /// the fit stalls there; bounded, it stops at the bound and the others converge
-    /// ([`ModeMatchingResult::at_bound`] names it). `None`: unbounded (θ > 0 only). A
-    /// parameter's own `lower` and `upper` ([`crate::core::model::Parameter`]) hold as
-    /// well, whichever is tighter.
-    pub bounds: Option<(f64, f64)>,
-}
-
-impl Default for ModeMatchingOptions {
-    fn default() -> Self {
-        Self {
-            step: StepControl::LevenbergMarquardt,
-            tol: 1e-5,
-            max_iterations: 200,
-            final_step: FinalStep::Evaluate,
-            sigma_tol: None,
-            eps_tol: None,
-            bounds: None,
-        }
-    }
-}
-
-/// The last (converged) Levenberg–Marquardt step.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum FinalStep {
-    /// Take it and evaluate there (one more eigen solve, and a Jacobian at the new θ for
-    /// (15)); the step is kept only if ε does not rise. The default.
-    Evaluate,
-    /// Stop at the current θ, which is within the tolerance of the minimum.
-    Stop,
-    /// Take it without evaluating: the result's θ is the Gauss–Newton point
-    /// `θ · exp(Δ ln θ)`, while its `last` evaluation, ε and covariance (15) stay at the θ
-    /// the step was computed from. The error left is the iteration's contraction times the
-    /// step (on the lab frame about a tenth of it). For trackers, whose steps are bounded
-    /// by [`ModeMatchingOptions::sigma_tol`].
-    Extrapolate,
-}
-
-/// Why the iteration stopped.
-#[derive(Debug, Clone, PartialEq)]
-pub enum Termination {
-    Converged,
-    MaxIterations,
-    /// No step reduces ε (damping exhausted) before the convergence test holds.
-    Stalled,
-    /// Fixed-κ Gauss–Newton left θ > 0 or produced a non-finite step.
-    Diverged(String),
-}
-
-/// One accepted iterate.
-#[derive(Debug, Clone)]
-pub struct IterationRecord {
-    pub theta: Vec<f64>,
-    pub epsilon: f64,
-    /// Model mode (1-based) paired with each measured mode.
-    pub pairing: Vec<usize>,
-}
-
-/// Outcome of a mode-matching update.
-#[derive(Debug, Clone)]
-pub struct ModeMatchingResult {
-    /// The estimate: `last.theta`, or the Gauss–Newton point beyond it
-    /// ([`FinalStep::Extrapolate`]).
-    pub theta: Vec<f64>,
-    /// Covariance (15) (scaled by ε/(N−N_θ) under weighting (9)); `None` if SᵀWS is singular.
-    pub covariance: Option<Mat<f64>>,
-    pub termination: Termination,
-    /// Accepted steps (Jacobian evaluations).
-    pub iterations: usize,
-    /// Residual evaluations (eigen solves), including rejected trials.
-    pub evaluations: usize,
-    /// The final residual.
-    pub last: Evaluation,
-    /// θ, ε and pairing at the start and after every accepted step.
-    pub history: Vec<IterationRecord>,
-    /// Per parameter, the bound it ended at, if any: the data then only say that θ_i is
-    /// beyond it (a bound the fit pressed against, not an estimate).
-    pub at_bound: Vec<Option<AtBound>>,
-    /// The first-order conditions of the bounded problem at the final evaluation.
-    pub first_order: FirstOrder,
-}
-
-impl ModeMatchingResult {
-    pub fn converged(&self) -> bool {
-        self.termination == Termination::Converged
-    }
-    pub fn epsilon(&self) -> f64 {
-        self.last.epsilon
-    }
-    /// Standard deviations: square roots of the covariance diagonal (NaN if unavailable).
-    pub fn std(&self) -> Vec<f64> {
-        (0..self.theta.len())
-            .map(|i| {
-                self.covariance
-                    .as_ref()
-                    .map_or(f64::NAN, |c| c[(i, i)].sqrt())
-            })
-            .collect()
-    }
-}
-
-/// Called after every accepted iterate (and once at the start, iteration 0) with the
-/// iteration count and the iterate: a progress display for long updates (the large model's
-/// iterations take seconds).
-pub type ProgressFn = Box<dyn FnMut(usize, &IterationRecord) + Send>;
 
 /// The mode-matching solver for one model; reuses its evaluator across updates.
 pub struct ModeMatching {
@@ -221,42 +96,7 @@ impl ModeMatching {
         opts: &ModeMatchingOptions,
     ) -> Result<ModeMatchingResult, UpdateError> {
         check_theta(model, theta0)?;
-        if let StepControl::FixedKappa(k) = opts.step
-            && !(k.is_finite() && k > 0.0)
-        {
-            return Err(UpdateError::Option {
-                name: "kappa",
-                value: k,
-                reason: "must be a finite number > 0",
-            });
-        }
-        if !(opts.tol.is_finite() && opts.tol > 0.0) {
-            return Err(UpdateError::Option {
-                name: "tol",
-                value: opts.tol,
-                reason: "must be a finite number > 0",
-            });
-        }
-        for (name, v) in [("sigma_tol", opts.sigma_tol), ("eps_tol", opts.eps_tol)] {
-            if let Some(v) = v
-                && !(v.is_finite() && v > 0.0)
-            {
-                return Err(UpdateError::Option {
-                    name,
-                    value: v,
-                    reason: "must be a finite number > 0",
-                });
-            }
-        }
-        if let Some((lo, hi)) = opts.bounds
-            && !(lo.is_finite() && hi.is_finite() && lo > 0.0 && lo < 1.0 && hi > 1.0)
-        {
-            return Err(UpdateError::Option {
-                name: "bounds",
-                value: if lo > 0.0 && lo < 1.0 { hi } else { lo },
-                reason: "need finite factors 0 < lo < 1 < hi of the nominal θ",
-            });
-        }
+        check_options(opts)?;
         let bounds = LogBounds::new(model, opts.bounds);
         let theta0 = bounds.clamp(theta0);
         let ev = self.evaluator.evaluate(model, data, &theta0)?;
@@ -551,36 +391,6 @@ fn record(ev: &Evaluation) -> IterationRecord {
     }
 }
 
-/// The Gauss–Newton step (19), `(JᵀJ) Δ = −Jᵀ r`, by Cholesky; `None` if singular.
-/// Covariance (15) from the whitened Jacobian at `ev` (see [`ModeMatching::covariance`]).
-fn covariance_from_jacobian(
-    jac: &Mat<f64>,
-    data: &MeasuredData,
-    ev: &Evaluation,
-) -> Option<Mat<f64>> {
-    let a = jac.transpose() * jac;
-    let llt = a.llt(Side::Lower).ok()?;
-    let p = a.nrows();
-    let mut cov = Mat::<f64>::identity(p, p);
-    llt.solve_in_place(cov.as_mut());
-    if let Weighting::Heuristic { .. } = data.weighting {
-        let dof = data.n_data().saturating_sub(p).max(1) as f64;
-        cov *= faer::Scale(ev.epsilon / dof);
-    }
-    Some(cov)
-}
-
-/// Whether every `|step_i|` is below `t` standard deviations of (15) (the undamped step's
-/// `(A⁺)_ii`, scaled by `ε/(N − N_θ)` under weighting (9), as the covariance is).
-fn within_std(fs: &FreeStep, step: &[f64], t: f64, data: &MeasuredData, ev: &Evaluation) -> bool {
-    let p = step.len();
-    let scale = match data.weighting {
-        Weighting::Heuristic { .. } => ev.epsilon / data.n_data().saturating_sub(p).max(1) as f64,
-        _ => 1.0,
-    };
-    (0..p).all(|i| step[i].abs() < t * (fs.var[i] * scale).sqrt())
-}
-
 /// The state of one iteration.
 struct Iterate {
     ev: Evaluation,
@@ -602,194 +412,6 @@ struct Iterate {
     extrapolated: Option<Vec<f64>>,
 }
 
-/// The normal matrix `A = J_uᵀJ_u` and gradient `g = J_uᵀr` (half that of ε) in
-/// `u = ln θ` (`J_u = J diag(θ)`), with every held parameter decoupled: a parameter at a
-/// bound that descent would push beyond (and, after a failed release, any parameter at a
-/// bound) gets the identity's row and column and a zero gradient, so no step moves it.
-fn normal_equations(
-    jac: &Mat<f64>,
-    r: &[f64],
-    theta: &[f64],
-    bounds: &LogBounds,
-    hold_bounded: bool,
-) -> (Mat<f64>, faer::Col<f64>) {
-    let p = theta.len();
-    let mut ju = jac.clone();
-    for l in 0..p {
-        for i in 0..ju.nrows() {
-            ju[(i, l)] *= theta[l];
-        }
-    }
-    let mut a = ju.transpose() * &ju;
-    let mut g = ju.transpose() * faer::ColRef::from_slice(r);
-    for i in 0..p {
-        if held(bounds, i, theta[i].ln(), g[i], hold_bounded) {
-            for j in 0..p {
-                a[(i, j)] = 0.0;
-                a[(j, i)] = 0.0;
-            }
-            a[(i, i)] = 1.0;
-            g[i] = 0.0;
-        }
-    }
-    (a, g)
-}
-
-/// Whether parameter `i` at `u = ln θ_i` is held at its bound: on it with the descent
-/// direction `−g_i` pointing out (or any parameter on a bound once `hold_bounded`).
-fn held(bounds: &LogBounds, i: usize, u: f64, g: f64, hold_bounded: bool) -> bool {
-    match bounds.side(i, u, 1e-12) {
-        Some(AtBound::Upper) => g < 0.0 || hold_bounded,
-        Some(AtBound::Lower) => g > 0.0 || hold_bounded,
-        None => false,
-    }
-}
-
-/// Below this ratio of a Cholesky pivot to its diagonal entry (`L_ii² / A_ii`: the share
-/// of column i of the Jacobian not explained by the columns before it), the normal matrix
-/// is taken as singular and the step is the minimum-norm one; the pseudo-inverse drops
-/// eigenvalues of the scaled matrix below it. 1e-12 on `A` is 1e-6 on the Jacobian's
-/// columns. At 100 roundings instead, the Cholesky step of a nearly singular matrix
-/// passed the convergence test with a step of e^1000 along a direction the data hardly
-/// see (the diagnosis of two hidden effects on the lab frame met θ = NaN there).
-const RANK_TOL: f64 = 1e-12;
-
-/// The undamped Gauss–Newton step (19) `δ = −A⁺g` on the free parameters, with `A⁺` the
-/// inverse of the normal matrix, or, where it is singular (more parameters than data
-/// resolve, normal in the field), its pseudo-inverse in Marquardt's scaling: the smallest
-/// step that reaches the linear model's minimum. Its predicted decrease `gᵀA⁺g` (the
-/// Gauss–Newton decrement) is zero exactly at a first-order point.
-struct FreeStep {
-    step: Vec<f64>,
-    /// `(A⁺)_ii`: the variance of `ln θ_i` by (15) where the data determine it.
-    var: Vec<f64>,
-    /// `A` itself, for the predicted decrease of a step cut at a bound.
-    a: Mat<f64>,
-}
-
-impl FreeStep {
-    fn normal_times(&self, x: &[f64]) -> Vec<f64> {
-        let ax = &self.a * faer::ColRef::from_slice(x);
-        (0..x.len()).map(|i| ax[i]).collect()
-    }
-}
-
-/// [`FreeStep`] for the normal equations `A`, `g` (held parameters already decoupled):
-/// Cholesky when `A` is numerically of full rank, else an eigendecomposition of
-/// `D^{-1/2} A D^{-1/2}` (`D = diag A`) with eigenvalues below [`RANK_TOL`] of the largest
-/// dropped. `None` if the step is not finite.
-fn free_gauss_newton(a: &Mat<f64>, g: &faer::Col<f64>) -> Option<FreeStep> {
-    let p = g.nrows();
-    let full_rank = a.llt(Side::Lower).ok().filter(|llt| {
-        let l = llt.L();
-        (0..p).all(|i| l[(i, i)] * l[(i, i)] >= RANK_TOL * a[(i, i)])
-    });
-    let (step, var) = match full_rank {
-        Some(llt) => {
-            let step = step_from(&llt, g)?;
-            let mut inv = Mat::<f64>::identity(p, p);
-            llt.solve_in_place(inv.as_mut());
-            (step, (0..p).map(|i| inv[(i, i)]).collect())
-        }
-        None => {
-            let pinv = scaled_pseudo_inverse(a)?;
-            let s = &pinv * g;
-            (
-                (0..p).map(|i| -s[i]).collect(),
-                (0..p).map(|i| pinv[(i, i)]).collect(),
-            )
-        }
-    };
-    step.iter().all(|x| x.is_finite()).then(|| FreeStep {
-        step,
-        var,
-        a: a.clone(),
-    })
-}
-
-/// `A⁺ = D^{-1/2} (D^{-1/2} A D^{-1/2})⁺ D^{-1/2}` with `D = diag A` (a zero diagonal is
-/// taken as 1), eigenvalues below [`RANK_TOL`] of the largest dropped.
-fn scaled_pseudo_inverse(a: &Mat<f64>) -> Option<Mat<f64>> {
-    let p = a.nrows();
-    let d: Vec<f64> = (0..p)
-        .map(|i| {
-            if a[(i, i)] > 0.0 {
-                a[(i, i)].sqrt()
-            } else {
-                1.0
-            }
-        })
-        .collect();
-    let scaled = Mat::from_fn(p, p, |i, j| a[(i, j)] / (d[i] * d[j]));
-    let evd = scaled.self_adjoint_eigen(Side::Lower).ok()?;
-    let (u, s) = (evd.U(), evd.S());
-    let top = (0..p).map(|k| s[k]).fold(0.0_f64, f64::max);
-    Some(Mat::from_fn(p, p, |i, j| {
-        let sum: f64 = (0..p)
-            .filter(|&k| s[k] > RANK_TOL * top)
-            .map(|k| u[(i, k)] * u[(j, k)] / s[k])
-            .sum();
-        sum / (d[i] * d[j])
-    }))
-}
-
-/// Each step entry cut at the bounds.
-fn clipped(bounds: &LogBounds, theta: &[f64], step: &[f64]) -> Vec<f64> {
-    (0..step.len())
-        .map(|i| bounds.clip(i, theta[i].ln(), step[i]))
-        .collect()
-}
-
-/// The first-order (KKT) conditions of the bounded problem at the final θ.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct FirstOrder {
-    /// The largest `|∂ε/∂ln θ_i|` over the parameters free to move that way (a parameter
-    /// on a bound with descent pointing out of the box counts 0): the projected gradient.
-    pub projected_gradient: f64,
-    /// The Gauss–Newton decrement `gᵀA⁺g` on those parameters: the decrease of ε the
-    /// linear model still promises (0 at a first-order point).
-    pub decrement: f64,
-}
-
-impl FirstOrder {
-    fn at(jac: &Mat<f64>, ev: &Evaluation, bounds: &LogBounds) -> Self {
-        let (a, g) = normal_equations(jac, &ev.r, &ev.theta, bounds, false);
-        Self::of(&g, free_gauss_newton(&a, &g).as_ref())
-    }
-
-    /// From the gradient (held parameters zeroed) and the undamped step over the free ones.
-    fn of(g: &faer::Col<f64>, fs: Option<&FreeStep>) -> Self {
-        let projected_gradient = (0..g.nrows()).map(|i| 2.0 * g[i].abs()).fold(0.0, f64::max);
-        let decrement = fs.map_or(f64::NAN, |fs| {
-            -fs.step
-                .iter()
-                .zip(g.iter())
-                .map(|(d, gi)| d * gi)
-                .sum::<f64>()
-        });
-        Self {
-            projected_gradient,
-            decrement,
-        }
-    }
-}
-
-/// Gauss–Newton step (19)–(20) with κ = 1: `−(JᵀJ)⁻¹ Jᵀ r`.
-fn gauss_newton_step(jac: &Mat<f64>, r: &[f64]) -> Option<Vec<f64>> {
-    let a = jac.transpose() * jac;
-    let g = jac.transpose() * faer::ColRef::from_slice(r);
-    step_from(&a.llt(Side::Lower).ok()?, &g)
-}
-
-/// `−A⁻¹ g` for the normal matrix `A = JᵀJ` and gradient `g = Jᵀr`, from the Cholesky
-/// factor of `A` (None if the step is not finite).
-fn step_from(llt: &Llt<f64>, g: &faer::Col<f64>) -> Option<Vec<f64>> {
-    let mut step = -g;
-    llt.solve_in_place(step.as_mat_mut());
-    let v: Vec<f64> = (0..step.nrows()).map(|i| step[i]).collect();
-    v.iter().all(|x| x.is_finite()).then_some(v)
-}
-
 fn check_theta(model: &Model, theta: &[f64]) -> Result<(), UpdateError> {
     if theta.len() != model.n_params() {
         return Err(UpdateError::ThetaLength {
@@ -806,53 +428,44 @@ fn check_theta(model: &Model, theta: &[f64]) -> Result<(), UpdateError> {
     Ok(())
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// A singular normal matrix (three parameters, rank 2: the third column of J is the sum
-    /// of the first two): the step is the minimum-norm one in Marquardt's scaling, it
-    /// reaches the linear model's minimum (`A δ = −g` holds, to rounding), its predicted
-    /// decrease is `gᵀA⁺g`, and with `g` in the range of `A` it is 0 exactly where g is.
-    #[test]
-    fn a_singular_normal_matrix_gives_the_minimum_norm_step() {
-        let j = Mat::from_fn(4, 3, |i, l| match l {
-            0 => [1.0, 2.0, 0.0, 1.0][i],
-            1 => [0.0, 1.0, 3.0, 1.0][i],
-            _ => [1.0, 3.0, 3.0, 2.0][i],
+/// Checks the options, in this order: κ of [`StepControl::FixedKappa`], `tol`, `sigma_tol`
+/// and `eps_tol` (finite and > 0), and `bounds` (finite, `0 < lo < 1 < hi`).
+fn check_options(opts: &ModeMatchingOptions) -> Result<(), UpdateError> {
+    if let StepControl::FixedKappa(k) = opts.step
+        && !(k.is_finite() && k > 0.0)
+    {
+        return Err(UpdateError::Option {
+            name: "kappa",
+            value: k,
+            reason: "must be a finite number > 0",
         });
-        let r = faer::col![0.5, -1.0, 2.0, 0.25];
-        let a = j.transpose() * &j;
-        let g = j.transpose() * &r;
-        // Cholesky of this A "succeeds" on rounding; its last pivot is ~1e-16 of A_33.
-        let fs = free_gauss_newton(&a, &g).expect("a finite step");
-        let ad = fs.normal_times(&fs.step);
-        for i in 0..3 {
-            assert!(
-                (ad[i] + g[i]).abs() < 1e-12 * g.norm_l2(),
-                "A δ ≠ −g: {ad:?}"
-            );
-        }
-        // Minimum norm in the scaled metric: no component along the null vector (1, 1, −1)
-        // scaled by D^{1/2} = diag(√A_ii).
-        let d: Vec<f64> = (0..3).map(|i| a[(i, i)].sqrt()).collect();
-        let null = [d[0], d[1], -d[2]];
-        let along: f64 = (0..3).map(|i| d[i] * fs.step[i] * null[i]).sum();
-        assert!(along.abs() < 1e-12, "step has a null-space part {along}");
-        // The Gauss–Newton decrement is the squared projection of r on range(J).
-        let dec: f64 = -(0..3).map(|i| fs.step[i] * g[i]).sum::<f64>();
-        let qr = j.qr();
-        let q = qr.compute_thin_Q();
-        let proj = q.transpose() * &r;
-        // range(J) has dimension 2: the projection on its first two columns of Q.
-        let expected = proj[0] * proj[0] + proj[1] * proj[1];
-        assert!(
-            (dec - expected).abs() < 1e-12 * expected,
-            "{dec} vs {expected}"
-        );
-        // At a first-order point (g = 0) the step and decrement are 0.
-        let zero = faer::Col::<f64>::zeros(3);
-        let fs0 = free_gauss_newton(&a, &zero).unwrap();
-        assert!(fs0.step.iter().all(|v| *v == 0.0));
     }
+    if !(opts.tol.is_finite() && opts.tol > 0.0) {
+        return Err(UpdateError::Option {
+            name: "tol",
+            value: opts.tol,
+            reason: "must be a finite number > 0",
+        });
+    }
+    for (name, v) in [("sigma_tol", opts.sigma_tol), ("eps_tol", opts.eps_tol)] {
+        if let Some(v) = v
+            && !(v.is_finite() && v > 0.0)
+        {
+            return Err(UpdateError::Option {
+                name,
+                value: v,
+                reason: "must be a finite number > 0",
+            });
+        }
+    }
+    if let Some((lo, hi)) = opts.bounds
+        && !(lo.is_finite() && hi.is_finite() && lo > 0.0 && lo < 1.0 && hi > 1.0)
+    {
+        return Err(UpdateError::Option {
+            name: "bounds",
+            value: if lo > 0.0 && lo < 1.0 { hi } else { lo },
+            reason: "need finite factors 0 < lo < 1 < hi of the nominal θ",
+        });
+    }
+    Ok(())
 }
