@@ -160,8 +160,9 @@ mod tests {
         let r = range();
         let why = r.implausible_all(&data(&[1e-3, 5.0])).unwrap();
         assert!(why.contains("1st lowest frequency, 0.001000 Hz"), "{why}");
-        // The second lowest against the second mode's floor (3.18 Hz at λ = 400).
-        let why = r.implausible_all(&data(&[hz_of(100.0), 1.0])).unwrap();
+        // The lowest (0.9 Hz) within a factor of two of mode 1's floor (1.59 Hz), the
+        // second (1.2 Hz) not of mode 2's (3.18 Hz at λ = 400).
+        let why = r.implausible_all(&data(&[0.9, 1.2])).unwrap();
         assert!(
             why.contains("2nd lowest") && why.contains("3.1831 Hz"),
             "{why}"
