@@ -11,7 +11,7 @@
 use std::collections::HashMap;
 use std::fmt::Write as _;
 
-use crate::core::model::spec::ModelSpec;
+use crate::core::model::spec::{ModelSpec, SpaceFrameSpec};
 
 type P3 = [f64; 3];
 
@@ -42,99 +42,157 @@ fn lerp(a: P3, b: P3, t: f64) -> P3 {
     std::array::from_fn(|i| a[i] + t * (b[i] - a[i]))
 }
 
+/// What a frame model file names, before the places are looked up.
+struct Named {
+    /// (name, from, to, elements) of each member.
+    members: Vec<(String, String, String, usize)>,
+    /// (name, member, node, model connection names) of each connection.
+    conns: Vec<(String, String, String, Vec<String>)>,
+    supports: Vec<String>,
+    joints: Vec<String>,
+    /// (name, location) of each channel.
+    channels: Vec<(String, String)>,
+}
+
+impl Named {
+    /// The names of a space frame, its node positions into `locations`.
+    fn space(sf: &SpaceFrameSpec, locations: &mut HashMap<String, P3>) -> Self {
+        for n in &sf.nodes {
+            locations.insert(n.name.clone(), [n.x, n.y, n.z]);
+        }
+        Named {
+            members: sf
+                .members
+                .iter()
+                .map(|m| (m.name.clone(), m.from.clone(), m.to.clone(), m.elements))
+                .collect(),
+            conns: sf
+                .connections
+                .iter()
+                .map(|c| {
+                    (
+                        c.name(),
+                        c.member.clone(),
+                        c.node.clone(),
+                        c.axes().map(|(n, _)| n).collect(),
+                    )
+                })
+                .collect(),
+            supports: sf.supports.iter().map(|s| s.node.clone()).collect(),
+            joints: sf.joints.iter().map(|j| j.node.clone()).collect(),
+            channels: sf
+                .channels
+                .iter()
+                .map(|c| (c.name.clone(), c.at.clone()))
+                .collect(),
+        }
+    }
+
+    /// The names of a plane frame, its node positions (z = 0) into `locations`.
+    fn plane(spec: &ModelSpec, locations: &mut HashMap<String, P3>) -> Self {
+        for n in &spec.nodes {
+            locations.insert(n.name.clone(), [n.x, n.y, 0.0]);
+        }
+        Named {
+            members: spec
+                .members
+                .iter()
+                .map(|m| (m.name.clone(), m.from.clone(), m.to.clone(), m.elements))
+                .collect(),
+            conns: spec
+                .connections
+                .iter()
+                .map(|c| {
+                    let name = c
+                        .name
+                        .clone()
+                        .unwrap_or_else(|| format!("{}@{}", c.member, c.node));
+                    (name.clone(), c.member.clone(), c.node.clone(), vec![name])
+                })
+                .collect(),
+            supports: spec.supports.iter().map(|s| s.node.clone()).collect(),
+            joints: spec.joints.iter().map(|j| j.node.clone()).collect(),
+            channels: spec
+                .channels
+                .iter()
+                .map(|c| (c.name.clone(), c.at.clone()))
+                .collect(),
+        }
+    }
+}
+
 impl Geometry {
     /// The geometry of a plane frame or a space frame; `None` for the generated solid.
     pub fn of(spec: &ModelSpec) -> Option<Self> {
         let mut g = Geometry::default();
-        // (name, from, to, elements) of each member; node positions.
-        let mut members: Vec<(String, String, String, usize)> = Vec::new();
-        let mut conns: Vec<(String, String, String, Vec<String>)> = Vec::new();
-        let (supports, joints, channels): (Vec<String>, Vec<String>, Vec<(String, String)>);
-        if let Some(sf) = &spec.space_frame {
-            for n in &sf.nodes {
-                g.locations.insert(n.name.clone(), [n.x, n.y, n.z]);
-            }
-            members.extend(
-                sf.members
-                    .iter()
-                    .map(|m| (m.name.clone(), m.from.clone(), m.to.clone(), m.elements)),
-            );
-            conns.extend(sf.connections.iter().map(|c| {
-                (
-                    c.name(),
-                    c.member.clone(),
-                    c.node.clone(),
-                    c.axes().map(|(n, _)| n).collect(),
-                )
-            }));
-            supports = sf.supports.iter().map(|s| s.node.clone()).collect();
-            joints = sf.joints.iter().map(|j| j.node.clone()).collect();
-            channels = sf
-                .channels
-                .iter()
-                .map(|c| (c.name.clone(), c.at.clone()))
-                .collect();
+        let named = if let Some(sf) = &spec.space_frame {
+            Named::space(sf, &mut g.locations)
         } else if spec.solid_frame.is_none() {
             g.planar = true;
-            for n in &spec.nodes {
-                g.locations.insert(n.name.clone(), [n.x, n.y, 0.0]);
-            }
-            members.extend(
-                spec.members
-                    .iter()
-                    .map(|m| (m.name.clone(), m.from.clone(), m.to.clone(), m.elements)),
-            );
-            conns.extend(spec.connections.iter().map(|c| {
-                let name = c
-                    .name
-                    .clone()
-                    .unwrap_or_else(|| format!("{}@{}", c.member, c.node));
-                (name.clone(), c.member.clone(), c.node.clone(), vec![name])
-            }));
-            supports = spec.supports.iter().map(|s| s.node.clone()).collect();
-            joints = spec.joints.iter().map(|j| j.node.clone()).collect();
-            channels = spec
-                .channels
-                .iter()
-                .map(|c| (c.name.clone(), c.at.clone()))
-                .collect();
+            Named::plane(spec, &mut g.locations)
         } else {
             return None;
-        }
+        };
+        let ends = g.place_members(&named.members);
+        g.place_connections(named.conns, &ends);
+        g.supports = named
+            .supports
+            .iter()
+            .filter_map(|n| g.position(n))
+            .collect();
+        g.joints = named.joints.iter().filter_map(|n| g.position(n)).collect();
+        g.channels = named
+            .channels
+            .into_iter()
+            .filter_map(|(name, at)| Some((name, g.position(&at)?)))
+            .collect();
+        Some(g)
+    }
+
+    /// Each member whose ends are known, with its mesh nodes `<member>.<k>`; returns the
+    /// end nodes (from, to) of each by name.
+    fn place_members(
+        &mut self,
+        members: &[(String, String, String, usize)],
+    ) -> HashMap<String, (String, String)> {
         let mut ends: HashMap<String, (String, String)> = HashMap::new();
-        for (name, from, to, elements) in &members {
-            let (Some(&a), Some(&b)) = (g.locations.get(from), g.locations.get(to)) else {
+        for (name, from, to, elements) in members {
+            let (Some(&a), Some(&b)) = (self.locations.get(from), self.locations.get(to)) else {
                 continue;
             };
             for k in 0..=*elements {
-                g.locations.insert(
+                self.locations.insert(
                     format!("{name}.{k}"),
                     lerp(a, b, k as f64 / *elements as f64),
                 );
             }
-            g.members.push((name.clone(), a, b));
+            self.members.push((name.clone(), a, b));
             ends.insert(name.clone(), (from.clone(), to.clone()));
         }
+        ends
+    }
+
+    /// Each connection whose member and node are known, marked on its member near the
+    /// node (`ends`: each member's end nodes).
+    fn place_connections(
+        &mut self,
+        conns: Vec<(String, String, String, Vec<String>)>,
+        ends: &HashMap<String, (String, String)>,
+    ) {
         for (name, member, node, model_names) in conns {
-            let (Some((from, to)), Some(&at)) = (ends.get(&member), g.locations.get(&node)) else {
+            let (Some((from, to)), Some(&at)) = (ends.get(&member), self.locations.get(&node))
+            else {
                 continue;
             };
             let other = if *from == node { to } else { from };
-            if let Some(&far) = g.locations.get(other) {
-                g.connections.push(ConnectionMark {
+            if let Some(&far) = self.locations.get(other) {
+                self.connections.push(ConnectionMark {
                     name,
                     at: lerp(at, far, 0.12),
                     model_names,
                 });
             }
         }
-        g.supports = supports.iter().filter_map(|n| g.position(n)).collect();
-        g.joints = joints.iter().filter_map(|n| g.position(n)).collect();
-        g.channels = channels
-            .into_iter()
-            .filter_map(|(name, at)| Some((name, g.position(&at)?)))
-            .collect();
-        Some(g)
     }
 
     /// The position of a node or mesh node `<member>.<k>`, or of a diagnosis location
@@ -184,30 +242,7 @@ impl<'g> Canvas<'g> {
     /// supports (triangles), channels (dots), and a title.
     pub fn new(g: &'g Geometry, width: f64, height: f64, title: &str) -> Self {
         let pad = 70.0;
-        let pts: Vec<(f64, f64)> = g
-            .members
-            .iter()
-            .flat_map(|m| [m.1, m.2])
-            .map(|p| project(g.planar, p))
-            .collect();
-        let (mut lo, mut hi) = (
-            (f64::INFINITY, f64::INFINITY),
-            (f64::NEG_INFINITY, f64::NEG_INFINITY),
-        );
-        for p in &pts {
-            lo = (lo.0.min(p.0), lo.1.min(p.1));
-            hi = (hi.0.max(p.0), hi.1.max(p.1));
-        }
-        if pts.is_empty() {
-            (lo, hi) = ((0.0, 0.0), (1.0, 1.0));
-        }
-        let scale = ((width - 2.0 * pad) / (hi.0 - lo.0).max(1e-9))
-            .min((height - 2.0 * pad) / (hi.1 - lo.1).max(1e-9));
-        // Centre the drawing.
-        let origin = (
-            lo.0 - ((width - 2.0 * pad) / scale - (hi.0 - lo.0)) / 2.0,
-            lo.1 - ((height - 2.0 * pad) / scale - (hi.1 - lo.1)) / 2.0,
-        );
+        let (origin, scale) = fit(g, width, height, pad);
         let mut c = Canvas {
             g,
             svg: String::new(),
@@ -216,43 +251,65 @@ impl<'g> Canvas<'g> {
             height,
             pad,
         };
+        c.header(width, title);
+        c.frame();
+        c.channel_dots();
+        c
+    }
+
+    /// The SVG's opening tag, white background and title (and the axes of a space frame).
+    fn header(&mut self, width: f64, title: &str) {
+        let height = self.height;
         let _ = writeln!(
-            c.svg,
+            self.svg,
             r#"<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" font-family="sans-serif" font-size="12">"#
         );
-        let _ = writeln!(c.svg, r#"<rect width="100%" height="100%" fill="white"/>"#);
         let _ = writeln!(
-            c.svg,
+            self.svg,
+            r#"<rect width="100%" height="100%" fill="white"/>"#
+        );
+        let _ = writeln!(
+            self.svg,
             r#"<text x="10" y="20" font-size="14">{}</text>"#,
             escape(title)
         );
-        if !g.planar {
-            c.axes_key();
+        if !self.g.planar {
+            self.axes_key();
         }
+    }
+
+    /// Members (lines), supports (triangles) and joints (squares).
+    fn frame(&mut self) {
+        let g = self.g;
         for (name, a, b) in &g.members {
-            let ((x1, y1), (x2, y2)) = (c.xy(*a), c.xy(*b));
+            let ((x1, y1), (x2, y2)) = (self.xy(*a), self.xy(*b));
             let _ = writeln!(
-                c.svg,
+                self.svg,
                 r##"<line x1="{x1:.1}" y1="{y1:.1}" x2="{x2:.1}" y2="{y2:.1}" stroke="#555" stroke-width="3" stroke-linecap="round"><title>{}</title></line>"##,
                 escape(name)
             );
         }
         for p in &g.supports {
-            let (x, y) = c.xy(*p);
+            let (x, y) = self.xy(*p);
             let _ = writeln!(
-                c.svg,
+                self.svg,
                 r##"<path d="M {x:.1} {y:.1} l -9 14 h 18 z" fill="#777"/>"##
             );
         }
         for p in &g.joints {
-            let (x, y) = c.xy(*p);
+            let (x, y) = self.xy(*p);
             let _ = writeln!(
-                c.svg,
+                self.svg,
                 r##"<rect x="{:.1}" y="{:.1}" width="10" height="10" fill="#222"/>"##,
                 x - 5.0,
                 y - 5.0
             );
         }
+    }
+
+    /// The channels: one dot per place, its channels in the tooltip.
+    fn channel_dots(&mut self) {
+        let g = self.g;
         // One dot per place, its channels in the tooltip.
         let mut places: Vec<(P3, Vec<&str>)> = Vec::new();
         for (name, p) in &g.channels {
@@ -262,14 +319,13 @@ impl<'g> Canvas<'g> {
             }
         }
         for (p, names) in places {
-            let (x, y) = c.xy(p);
+            let (x, y) = self.xy(p);
             let _ = writeln!(
-                c.svg,
+                self.svg,
                 r##"<circle cx="{x:.1}" cy="{y:.1}" r="3" fill="#1a5276"><title>{}</title></circle>"##,
                 escape(&names.join(", "))
             );
         }
-        c
     }
 
     fn axes_key(&mut self) {
@@ -387,6 +443,37 @@ fn project(planar: bool, p: P3) -> (f64, f64) {
             (2.0 * p[1] - p[0] - p[2]) / 6f64.sqrt(),
         )
     }
+}
+
+/// The drawing's origin (its lower left corner in screen-plane coordinates) and scale
+/// (pixels per unit of length): the members' projected extent fitted, centred, inside
+/// `width × height` less `pad` on every side.
+fn fit(g: &Geometry, width: f64, height: f64, pad: f64) -> ((f64, f64), f64) {
+    let pts: Vec<(f64, f64)> = g
+        .members
+        .iter()
+        .flat_map(|m| [m.1, m.2])
+        .map(|p| project(g.planar, p))
+        .collect();
+    let (mut lo, mut hi) = (
+        (f64::INFINITY, f64::INFINITY),
+        (f64::NEG_INFINITY, f64::NEG_INFINITY),
+    );
+    for p in &pts {
+        lo = (lo.0.min(p.0), lo.1.min(p.1));
+        hi = (hi.0.max(p.0), hi.1.max(p.1));
+    }
+    if pts.is_empty() {
+        (lo, hi) = ((0.0, 0.0), (1.0, 1.0));
+    }
+    let scale = ((width - 2.0 * pad) / (hi.0 - lo.0).max(1e-9))
+        .min((height - 2.0 * pad) / (hi.1 - lo.1).max(1e-9));
+    // Centre the drawing.
+    let origin = (
+        lo.0 - ((width - 2.0 * pad) / scale - (hi.0 - lo.0)) / 2.0,
+        lo.1 - ((height - 2.0 * pad) / scale - (hi.1 - lo.1)) / 2.0,
+    );
+    (origin, scale)
 }
 
 fn escape(s: &str) -> String {

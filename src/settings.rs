@@ -173,10 +173,29 @@ impl Settings {
         Ok(s)
     }
 
+    /// Checks every value once, naming the key of the first bad one. The order of the
+    /// checks decides which error a configuration with several faults reports: the
+    /// tracker, cross-check and identification sections, the structures, the daemon's
+    /// limits and periods, the endpoints, then the log filter.
     fn validate(&self) -> Result<()> {
         self.tracker.validate()?;
         self.crosscheck.validate()?;
         self.identify.validate()?;
+        self.validate_structures()?;
+        self.validate_daemon()?;
+        self.validate_endpoints()?;
+        if tracing_subscriber::EnvFilter::try_new(&self.log.level).is_err() {
+            bail!(
+                "configuration key log.level: `{}` is not a tracing filter",
+                self.log.level
+            );
+        }
+        Ok(())
+    }
+
+    /// At least one structure, each with a name usable as a key-expression chunk and
+    /// watched once.
+    fn validate_structures(&self) -> Result<()> {
         if self.structures.is_empty() {
             bail!("configuration key structures: watch at least one structure");
         }
@@ -194,6 +213,12 @@ impl Settings {
                 );
             }
         }
+        Ok(())
+    }
+
+    /// The daemon's queue, payload and memory limits, its periods (with Zenoh's block
+    /// timeout: finite and > 0) and its log rotation size.
+    fn validate_daemon(&self) -> Result<()> {
         if self.daemon.queue == 0 {
             bail!("configuration key daemon.queue: must be at least 1");
         }
@@ -229,6 +254,12 @@ impl Settings {
         if self.daemon.log_rotate_mib == 0 {
             bail!("configuration key daemon.log_rotate_mib: must be at least 1");
         }
+        Ok(())
+    }
+
+    /// The metrics endpoint (host:port, or off), then Zenoh's endpoints, or its
+    /// configuration file when one is named (it must exist).
+    fn validate_endpoints(&self) -> Result<()> {
         if !self.metrics.listen.is_empty()
             && self.metrics.listen.parse::<std::net::SocketAddr>().is_err()
         {
@@ -254,12 +285,6 @@ impl Settings {
             bail!(
                 "configuration key zenoh.config_file: {} does not exist",
                 self.zenoh.config_file.display()
-            );
-        }
-        if tracing_subscriber::EnvFilter::try_new(&self.log.level).is_err() {
-            bail!(
-                "configuration key log.level: `{}` is not a tracing filter",
-                self.log.level
             );
         }
         Ok(())

@@ -15,11 +15,12 @@ use super::bayes_output::{
 use super::inputs::{Inputs, measured_data};
 use super::progress::{fmt_theta, iteration_progress, progress_line, spinner};
 use super::{load_model, parse_positive_list, write_json};
+use crate::contract::modal_set::ModalSet;
 use crate::contract::update::{Mapping, NamedTheta, StageOneDoc};
 use crate::core::model::Model;
 use crate::core::updating::bayesian::{
     BayesOptions, BayesProgress, BayesSolver, BayesUpdate, Observers, SigmaChoice, SigmaTrial,
-    bayesian_update, stage_one as core_stage_one,
+    StageOne, bayesian_update, stage_one as core_stage_one,
 };
 use crate::core::updating::{LogBounds, MeasuredData};
 
@@ -160,7 +161,7 @@ fn stage_one(
     b: &BayesUpdateArgs,
     shape_weight: f64,
     fine: &Model,
-    fine_set: &crate::contract::modal_set::ModalSet,
+    fine_set: &ModalSet,
     max_iter: usize,
     bounds: Option<(f64, f64)>,
 ) -> Result<StageOneOut> {
@@ -169,6 +170,20 @@ fn stage_one(
         .as_ref()
         .expect("called with a stage-I model");
     let coarse = load_model(path)?;
+    check_coarse_channels(path, &coarse, fine_set)?;
+    let set = stage_one_set(fine_set, b.stage1_modes)?;
+    let data = measured_data(&set, &coarse, shape_weight);
+    let one = solve_stage_one(b, fine, &coarse, &data, max_iter, bounds)?;
+    let modes = set.modes.len();
+    print_stage_one(&coarse, &one, modes);
+    Ok(StageOneOut {
+        doc: stage_one_doc(fine, &coarse, &one, modes),
+        theta0: one.theta0(),
+    })
+}
+
+/// Refuses a coarse model (read from `path`) that lacks a channel of the modal set.
+fn check_coarse_channels(path: &Path, coarse: &Model, fine_set: &ModalSet) -> Result<()> {
     if let Some(c) = fine_set
         .channels
         .iter()
@@ -180,8 +195,13 @@ fn stage_one(
             coarse.name
         );
     }
+    Ok(())
+}
+
+/// The modal set of stage I: the fine set, cut to its first `stage1_modes` modes if given.
+fn stage_one_set(fine_set: &ModalSet, stage1_modes: Option<usize>) -> Result<ModalSet> {
     let mut set = fine_set.clone();
-    if let Some(n) = b.stage1_modes {
+    if let Some(n) = stage1_modes {
         if n == 0 || n > set.modes.len() {
             bail!(
                 "--stage1-modes = {n}: the modal set has {} modes",
@@ -190,18 +210,30 @@ fn stage_one(
         }
         set.modes.truncate(n);
     }
-    let data = measured_data(&set, &coarse, shape_weight);
-    let (prior_mean, prior_std) = prior(&coarse, &b.prior)?;
+    Ok(set)
+}
+
+/// The MAP of the coarse model (the prior and σ_c of stage I, a spinner while σ_c is
+/// searched), mapped onto the fine model's parameters.
+fn solve_stage_one(
+    b: &BayesUpdateArgs,
+    fine: &Model,
+    coarse: &Model,
+    data: &MeasuredData,
+    max_iter: usize,
+    bounds: Option<(f64, f64)>,
+) -> Result<StageOne> {
+    let (prior_mean, prior_std) = prior(coarse, &b.prior)?;
     let sigma = sigma_choice(
-        &coarse,
+        coarse,
         b.stage1_sigma_c.as_deref().or(b.sigma_c.as_deref()),
         &b.sigma_range,
     )?;
     let (pb, mut report) = sigma_reporter(sigma);
     let one = core_stage_one(
         fine,
-        &coarse,
-        &data,
+        coarse,
+        data,
         &BayesOptions {
             solver: solver(b.solver),
             sigma,
@@ -216,12 +248,17 @@ fn stage_one(
     if let Some(pb) = pb {
         pb.finish_and_clear();
     }
+    Ok(one)
+}
+
+/// The line on stdout that reports stage I: model, σ_c, modes, iterations and θ̃.
+fn print_stage_one(coarse: &Model, one: &StageOne, modes: usize) {
     let res = &one.result;
     println!(
         "stage I: {} at σ_c = {:.4e}, {} modes, {} iterations: θ̃ = [{}]",
         coarse.name,
         one.sigma_c,
-        set.modes.len(),
+        modes,
         res.iterations,
         res.state
             .theta
@@ -230,36 +267,39 @@ fn stage_one(
             .collect::<Vec<_>>()
             .join(", ")
     );
-    Ok(StageOneOut {
-        doc: StageOneDoc {
-            model: coarse.name.clone(),
-            modes: set.modes.len(),
-            sigma_c: one.sigma_c,
-            sigma_c_auto: auto_doc(&one.auto),
-            iterations: res.iterations,
-            J_p: res.terms.total,
-            parameters: coarse
-                .parameters()
-                .iter()
-                .zip(&res.state.theta)
-                .map(|(p, &theta)| NamedTheta {
-                    name: p.name.clone(),
-                    theta,
-                })
-                .collect(),
-            mapping: fine
-                .parameters()
-                .iter()
-                .zip(&one.mapped)
-                .map(|(p, &(theta0, c))| Mapping {
-                    name: p.name.clone(),
-                    theta0,
-                    from: c.map(|c| coarse.parameters()[c].name.clone()),
-                })
-                .collect(),
-        },
-        theta0: one.theta0(),
-    })
+}
+
+/// The document of stage I: its σ_c, the coarse θ by name and how each fine parameter's
+/// start was mapped from it.
+fn stage_one_doc(fine: &Model, coarse: &Model, one: &StageOne, modes: usize) -> StageOneDoc {
+    let res = &one.result;
+    StageOneDoc {
+        model: coarse.name.clone(),
+        modes,
+        sigma_c: one.sigma_c,
+        sigma_c_auto: auto_doc(&one.auto),
+        iterations: res.iterations,
+        J_p: res.terms.total,
+        parameters: coarse
+            .parameters()
+            .iter()
+            .zip(&res.state.theta)
+            .map(|(p, &theta)| NamedTheta {
+                name: p.name.clone(),
+                theta,
+            })
+            .collect(),
+        mapping: fine
+            .parameters()
+            .iter()
+            .zip(&one.mapped)
+            .map(|(p, &(theta0, c))| Mapping {
+                name: p.name.clone(),
+                theta0,
+                from: c.map(|c| coarse.parameters()[c].name.clone()),
+            })
+            .collect(),
+    }
 }
 
 fn solver(s: SolverArg) -> BayesSolver {

@@ -13,7 +13,7 @@ use anyhow::{Context, Result};
 use serde_json::json;
 
 use super::{load_model, write_json};
-use crate::core::model::{Csc, ParameterKind};
+use crate::core::model::{Csc, Model, Parameter, ParameterKind};
 
 #[derive(Debug, clap::Args)]
 pub struct ExportArgs {
@@ -61,18 +61,37 @@ fn kind_name(kind: &ParameterKind) -> &'static str {
     }
 }
 
+/// Exports `K0`, every `K_l` and `M` of the model, its DOF names (`dofs.txt`) and
+/// `model.json` into the output directory.
 pub fn run(args: &ExportArgs) -> Result<()> {
     let model = load_model(&args.model)?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create directory {}", args.out.display()))?;
+    let files = exported_matrices(&model);
+    write_matrices(&args.out, &model, &files)?;
+    let dofs = args.out.join("dofs.txt");
+    std::fs::write(&dofs, model.dof_labels().join("\n") + "\n")
+        .with_context(|| format!("cannot write {}", dofs.display()))?;
+    write_json(&args.out.join("model.json"), &model_json(&model, &files))?;
+    Ok(())
+}
+
+/// The matrices exported, by file stem: `K0`, `K_<parameter>` for each parameter, `M`.
+fn exported_matrices(model: &Model) -> Vec<(String, &Csc)> {
     let mut files = vec![("K0".to_string(), model.k0())];
     for (l, p) in model.parameters().iter().enumerate() {
         files.push((format!("K_{}", p.name), model.k_param(l)));
     }
     files.push(("M".to_string(), model.mass()));
+    files
+}
+
+/// Writes each matrix as `<stem>.mtx` in `out`, printing a table of their sizes and
+/// lower-triangle nonzeros.
+fn write_matrices(out: &Path, model: &Model, files: &[(String, &Csc)]) -> Result<()> {
     println!("{:<24} {:>10} {:>12}", "file", "n", "nnz (lower)");
-    for (name, a) in &files {
-        let path = args.out.join(format!("{name}.mtx"));
+    for (name, a) in files {
+        let path = out.join(format!("{name}.mtx"));
         write_matrix_market(
             &path,
             a,
@@ -92,54 +111,62 @@ pub fn run(args: &ExportArgs) -> Result<()> {
             nnz
         );
     }
-    let dofs = args.out.join("dofs.txt");
-    std::fs::write(&dofs, model.dof_labels().join("\n") + "\n")
-        .with_context(|| format!("cannot write {}", dofs.display()))?;
-    write_json(
-        &args.out.join("model.json"),
-        &json!({
-            "schema": "boltwatch.matrices.v1",
-            "structure": model.name,
-            "n_dof": model.n_dof(),
-            "stiffness": "K(θ) = K0 + Σ θ_l K_l",
-            "files": files.iter().map(|(n, _)| format!("{n}.mtx")).collect::<Vec<_>>(),
-            "parameters": model.parameters().iter().enumerate().map(|(l, p)| {
-                let mut e = json!({
-                    "name": p.name,
-                    "nominal": p.nominal,
-                    "file": format!("K_{}.mtx", p.name),
-                    "kind": kind_name(&p.kind),
-                });
-                if let Some(k) = model.connection_stiffness(l) {
-                    e["stiffness"] = json!(k);
-                }
-                let elements: Vec<String> = model
-                    .parameter_elements(l)
-                    .into_iter()
-                    .filter(|(kind, _)| *kind != "matrix")
-                    .map(|(_, name)| name)
-                    .collect();
-                if !elements.is_empty() {
-                    e["elements"] = json!(elements);
-                }
-                if let Some(v) = p.lower {
-                    e["lower"] = json!(v);
-                }
-                if let Some(v) = p.upper {
-                    e["upper"] = json!(v);
-                }
-                e
-            }).collect::<Vec<_>>(),
-            "bayesian": model.bayesian,
-            "channels": model.channels().iter().map(|c| json!({
-                "name": c.name,
-                "dofs": c.dofs.iter().map(|&(i, w)| json!([i, w])).collect::<Vec<_>>(),
-            })).collect::<Vec<_>>(),
-            "locations": model.locations().iter().map(|l| json!({
-                "name": l.name,
-                "dofs": l.dofs,
-            })).collect::<Vec<_>>(),
-        }),
-    )?;
     Ok(())
+}
+
+/// `model.json`: the schema, the files, the parameters, the Bayesian defaults, the
+/// channels as rows of `D` and the named locations.
+fn model_json(model: &Model, files: &[(String, &Csc)]) -> serde_json::Value {
+    json!({
+        "schema": "boltwatch.matrices.v1",
+        "structure": model.name,
+        "n_dof": model.n_dof(),
+        "stiffness": "K(θ) = K0 + Σ θ_l K_l",
+        "files": files.iter().map(|(n, _)| format!("{n}.mtx")).collect::<Vec<_>>(),
+        "parameters": model
+            .parameters()
+            .iter()
+            .enumerate()
+            .map(|(l, p)| parameter_json(model, l, p))
+            .collect::<Vec<_>>(),
+        "bayesian": model.bayesian,
+        "channels": model.channels().iter().map(|c| json!({
+            "name": c.name,
+            "dofs": c.dofs.iter().map(|&(i, w)| json!([i, w])).collect::<Vec<_>>(),
+        })).collect::<Vec<_>>(),
+        "locations": model.locations().iter().map(|l| json!({
+            "name": l.name,
+            "dofs": l.dofs,
+        })).collect::<Vec<_>>(),
+    })
+}
+
+/// Parameter `l`'s entry in `model.json`: name, nominal θ, file and kind, then (where it
+/// has them) its connection stiffness, the elements it scales and its bounds.
+fn parameter_json(model: &Model, l: usize, p: &Parameter) -> serde_json::Value {
+    let mut e = json!({
+        "name": p.name,
+        "nominal": p.nominal,
+        "file": format!("K_{}.mtx", p.name),
+        "kind": kind_name(&p.kind),
+    });
+    if let Some(k) = model.connection_stiffness(l) {
+        e["stiffness"] = json!(k);
+    }
+    let elements: Vec<String> = model
+        .parameter_elements(l)
+        .into_iter()
+        .filter(|(kind, _)| *kind != "matrix")
+        .map(|(_, name)| name)
+        .collect();
+    if !elements.is_empty() {
+        e["elements"] = json!(elements);
+    }
+    if let Some(v) = p.lower {
+        e["lower"] = json!(v);
+    }
+    if let Some(v) = p.upper {
+        e["upper"] = json!(v);
+    }
+    e
 }

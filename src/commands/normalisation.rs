@@ -13,12 +13,15 @@
 //!   `tracker.normalisation.law = "LAW.json"` in the configuration, that structure's tracker
 //!   judges by them from its next start (replay or daemon), whatever it had learned.
 
+use std::fmt::Write;
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use chrono::{DateTime, Utc};
 use serde::{Deserialize, Serialize};
 
+use crate::core::normalisation::covariates::CovariateModel;
+use crate::core::normalisation::factors::FactorModel;
 use crate::io::mcap::from_ns;
 use crate::pipeline::normalise::NormalisationState;
 use crate::pipeline::{Tracker, TrackerState};
@@ -198,7 +201,6 @@ fn show(a: &ShowArgs) -> Result<()> {
 
 /// The models as tables (module docs).
 pub fn describe(structure: &str, names: &[String], st: &NormalisationState) -> String {
-    use std::fmt::Write;
     let mut out = String::new();
     let when = |t: Option<DateTime<Utc>>| t.map_or("-".to_string(), crate::contract::rfc3339);
     let _ = writeln!(
@@ -208,85 +210,98 @@ pub fn describe(structure: &str, names: &[String], st: &NormalisationState) -> S
         when(st.frozen_at)
     );
     if let Some(m) = &st.covariates {
-        let terms = m.basis.terms();
-        let ranges: Vec<String> = m
-            .basis
-            .covariates
+        write_covariate_law(&mut out, names, m);
+    }
+    if let Some(f) = &st.factors {
+        write_factors(&mut out, f);
+    }
+    out
+}
+
+/// The covariate law: its terms and the ranges learned over, then per parameter (named
+/// from `names`, else θ1, θ2, …) each coefficient ± its std, the scatter τ and the sets
+/// learned and held out.
+fn write_covariate_law(out: &mut String, names: &[String], m: &CovariateModel) {
+    let terms = m.basis.terms();
+    let ranges: Vec<String> = m
+        .basis
+        .covariates
+        .iter()
+        .zip(&m.ranges)
+        .map(|(c, r)| match r {
+            Some([lo, hi]) => format!("{c} {lo} … {hi}"),
+            None => format!("{c}: nothing learned"),
+        })
+        .collect();
+    let _ = writeln!(
+        out,
+        "covariate law: ln θ on {} (learned over {})",
+        terms.join(", "),
+        ranges.join("; ")
+    );
+    let _ = writeln!(
+        out,
+        "  {:<14} {}  {:>7}  {:>6} {:>6}",
+        "parameter",
+        terms
             .iter()
-            .zip(&m.ranges)
-            .map(|(c, r)| match r {
-                Some([lo, hi]) => format!("{c} {lo} … {hi}"),
-                None => format!("{c}: nothing learned"),
-            })
+            .map(|t| format!("{:>20}", t))
+            .collect::<Vec<_>>()
+            .join(" "),
+        "τ",
+        "sets",
+        "held"
+    );
+    for (l, r) in m.parameters.iter().enumerate() {
+        let name = names
+            .get(l)
+            .cloned()
+            .unwrap_or_else(|| format!("θ{}", l + 1));
+        let coef: Vec<String> = r
+            .beta
+            .iter()
+            .enumerate()
+            .map(|(i, b)| format!("{:>9.4} ± {:<8.4}", b, r.p[i][i].max(0.0).sqrt()))
             .collect();
         let _ = writeln!(
             out,
-            "covariate law: ln θ on {} (learned over {})",
-            terms.join(", "),
-            ranges.join("; ")
+            "  {:<14} {}  {:>7.4}  {:>6} {:>6}",
+            name,
+            coef.join(" "),
+            r.scatter().sqrt(),
+            r.learned,
+            r.held_out
         );
-        let _ = writeln!(
-            out,
-            "  {:<14} {}  {:>7}  {:>6} {:>6}",
-            "parameter",
-            terms
+    }
+}
+
+/// The output-only factor model: its factors, sets and leading generalised eigenvalues, or
+/// how many of the sets it needs it has learned.
+fn write_factors(out: &mut String, f: &FactorModel) {
+    match &f.fit {
+        Some(fit) => {
+            let k = fit.loadings.first().map_or(0, Vec::len);
+            let eig: Vec<String> = fit
+                .eigenvalues
                 .iter()
-                .map(|t| format!("{:>20}", t))
-                .collect::<Vec<_>>()
-                .join(" "),
-            "τ",
-            "sets",
-            "held"
-        );
-        for (l, r) in m.parameters.iter().enumerate() {
-            let name = names
-                .get(l)
-                .cloned()
-                .unwrap_or_else(|| format!("θ{}", l + 1));
-            let coef: Vec<String> = r
-                .beta
-                .iter()
-                .enumerate()
-                .map(|(i, b)| format!("{:>9.4} ± {:<8.4}", b, r.p[i][i].max(0.0).sqrt()))
+                .take(6)
+                .map(|e| format!("{e:.2}"))
                 .collect();
             let _ = writeln!(
                 out,
-                "  {:<14} {}  {:>7.4}  {:>6} {:>6}",
-                name,
-                coef.join(" "),
-                r.scatter().sqrt(),
-                r.learned,
-                r.held_out
+                "output-only: {k} factor(s) from {} sets ({} held out); generalised eigenvalues {} …",
+                f.sets,
+                f.held_out,
+                eig.join(", ")
+            );
+        }
+        None => {
+            let _ = writeln!(
+                out,
+                "output-only: {} of the {} sets needed learned",
+                f.sets,
+                f.min_sets()
             );
         }
     }
-    if let Some(f) = &st.factors {
-        match &f.fit {
-            Some(fit) => {
-                let k = fit.loadings.first().map_or(0, Vec::len);
-                let eig: Vec<String> = fit
-                    .eigenvalues
-                    .iter()
-                    .take(6)
-                    .map(|e| format!("{e:.2}"))
-                    .collect();
-                let _ = writeln!(
-                    out,
-                    "output-only: {k} factor(s) from {} sets ({} held out); generalised eigenvalues {} …",
-                    f.sets,
-                    f.held_out,
-                    eig.join(", ")
-                );
-            }
-            None => {
-                let _ = writeln!(
-                    out,
-                    "output-only: {} of the {} sets needed learned",
-                    f.sets,
-                    f.min_sets()
-                );
-            }
-        }
-    }
-    out
 }

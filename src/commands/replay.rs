@@ -2,12 +2,13 @@
 //! recording ([`crate::io::replay`]), a progress bar on stderr, and a summary of the alerts
 //! raised and the final stiffnesses on stdout.
 
+use std::fmt::Write;
 use std::path::PathBuf;
 
 use anyhow::Result;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use crate::contract::{AlertDetail, rfc3339};
+use crate::contract::{Alert, AlertDetail, Estimate, rfc3339};
 
 use crate::io::replay::{ReplayOptions, ReplaySummary, replay, with_suffix};
 use crate::settings::Settings;
@@ -82,7 +83,17 @@ fn num(v: Option<f64>, digits: usize) -> String {
 /// The human summary printed after a replay.
 pub fn summary_table(opts: &ReplayOptions, s: &ReplaySummary) -> String {
     let mut t = String::new();
-    use std::fmt::Write;
+    write_run(&mut t, opts, s);
+    write_alerts(&mut t, &s.alerts);
+    for (name, est) in &s.last_estimate {
+        write_final_stiffness(&mut t, name, est);
+    }
+    t
+}
+
+/// What the run read and wrote: the sets and readings replayed, the output, the windows
+/// identified, each tracker's counters and the topics not read.
+fn write_run(t: &mut String, opts: &ReplayOptions, s: &ReplaySummary) {
     if s.already_complete {
         let _ = writeln!(
             t,
@@ -124,60 +135,67 @@ pub fn summary_table(opts: &ReplayOptions, s: &ReplaySummary) -> String {
     for (topic, n) in &s.skipped_topics {
         let _ = writeln!(t, "  not read: {topic} ({n} messages)");
     }
-    let _ = writeln!(t, "\nalerts ({}):", s.alerts.len());
-    if s.alerts.is_empty() {
+}
+
+/// The alerts raised, one row each (time, structure, connection, kind, drop, confidence),
+/// or `none`.
+fn write_alerts(t: &mut String, alerts: &[Alert]) {
+    let _ = writeln!(t, "\nalerts ({}):", alerts.len());
+    if alerts.is_empty() {
         let _ = writeln!(t, "  none");
-    } else {
+        return;
+    }
+    let _ = writeln!(
+        t,
+        "  {:<24} {:<11} {:<16} {:<17} {:>7} {:>10}",
+        "time", "structure", "connection", "kind / level", "drop", "confidence"
+    );
+    for a in alerts {
+        let drop = match a.detail {
+            AlertDetail::Loosening { drop, .. } => Some(drop),
+            AlertDetail::Inadequacy { .. } => None,
+        };
         let _ = writeln!(
             t,
             "  {:<24} {:<11} {:<16} {:<17} {:>7} {:>10}",
-            "time", "structure", "connection", "kind / level", "drop", "confidence"
+            rfc3339(a.time),
+            a.structure,
+            a.connection.as_deref().unwrap_or("(model)"),
+            format!("{} {}", a.kind.as_str(), a.level.as_str()),
+            drop.map_or_else(|| "-".into(), |d| format!("{:.1} %", 100.0 * d)),
+            num(a.confidence, 3),
         );
-        for a in &s.alerts {
-            let drop = match a.detail {
-                AlertDetail::Loosening { drop, .. } => Some(drop),
-                AlertDetail::Inadequacy { .. } => None,
-            };
-            let _ = writeln!(
-                t,
-                "  {:<24} {:<11} {:<16} {:<17} {:>7} {:>10}",
-                rfc3339(a.time),
-                a.structure,
-                a.connection.as_deref().unwrap_or("(model)"),
-                format!("{} {}", a.kind.as_str(), a.level.as_str()),
-                drop.map_or_else(|| "-".into(), |d| format!("{:.1} %", 100.0 * d)),
-                num(a.confidence, 3),
-            );
-        }
     }
-    for (name, est) in &s.last_estimate {
-        let _ = writeln!(
-            t,
-            "\nfinal stiffness of {name} at {} (ε = {}, bound {}):",
-            rfc3339(est.time),
-            num(Some(est.epsilon), 1),
-            num(Some(est.epsilon_bound), 1)
-        );
+}
+
+/// The last estimate of structure `name`: its time and ε, then one row per parameter
+/// (θ, filtered level and band, baseline, change, stiffness).
+fn write_final_stiffness(t: &mut String, name: &str, est: &Estimate) {
+    let _ = writeln!(
+        t,
+        "\nfinal stiffness of {name} at {} (ε = {}, bound {}):",
+        rfc3339(est.time),
+        num(Some(est.epsilon), 1),
+        num(Some(est.epsilon_bound), 1)
+    );
+    let _ = writeln!(
+        t,
+        "  {:<10} {:>8} {:>8} {:>17} {:>8} {:>8} {:>12}",
+        "parameter", "θ", "filtered", "95 % band", "baseline", "change", "k_R·θ N·m/rad"
+    );
+    for p in &est.parameters {
+        let f = &p.filtered;
         let _ = writeln!(
             t,
             "  {:<10} {:>8} {:>8} {:>17} {:>8} {:>8} {:>12}",
-            "parameter", "θ", "filtered", "95 % band", "baseline", "change", "k_R·θ N·m/rad"
+            p.name,
+            num(Some(p.theta), 3),
+            num(Some(f.level), 3),
+            format!("[{}, {}]", num(Some(f.lower95), 3), num(Some(f.upper95), 3)),
+            num(p.baseline, 3),
+            f.change
+                .map_or_else(|| "-".into(), |c| format!("{:+.1} %", 100.0 * c)),
+            num(p.stiffness, 0),
         );
-        for p in &est.parameters {
-            let f = &p.filtered;
-            let _ = writeln!(
-                t,
-                "  {:<10} {:>8} {:>8} {:>17} {:>8} {:>8} {:>12}",
-                p.name,
-                num(Some(p.theta), 3),
-                num(Some(f.level), 3),
-                format!("[{}, {}]", num(Some(f.lower95), 3), num(Some(f.upper95), 3)),
-                num(p.baseline, 3),
-                f.change
-                    .map_or_else(|| "-".into(), |c| format!("{:+.1} %", 100.0 * c)),
-                num(p.stiffness, 0),
-            );
-        }
     }
-    t
 }

@@ -3,6 +3,7 @@
 use std::path::PathBuf;
 
 use anyhow::{Result, bail};
+use chrono::{DateTime, Utc};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
@@ -10,7 +11,8 @@ use super::{ModelAtTheta, write_json};
 use crate::contract::modal_set::{MeasuredMode, ModalSet};
 use crate::core::diagnosis::injection::Injection;
 use crate::core::modal::solver_for;
-use crate::core::simulate::{Noise, simulate_modes};
+use crate::core::model::Model;
+use crate::core::simulate::{Noise, SimulatedMode, simulate_modes};
 
 #[derive(Debug, clap::Args)]
 pub struct SimulateArgs {
@@ -47,23 +49,43 @@ pub struct SimulateArgs {
     pub out: PathBuf,
 }
 
+/// `boltwatch simulate`: the model at θ (with any injected effects), its lowest modes with
+/// noise, written as a modal set and listed on stdout.
 pub fn run(args: &SimulateArgs) -> Result<()> {
-    let (model, theta) = if args.inject.is_empty() {
-        args.at.load()?
-    } else {
-        let (mut description, _) = super::load_description(&args.at.model)?;
-        for s in &args.inject {
-            Injection::parse(s)
-                .and_then(|i| i.apply(&mut description))
-                .map_err(|e| anyhow::anyhow!("--inject {e}"))?;
-        }
-        let model = description
-            .build()
-            .map_err(|e| anyhow::anyhow!("--inject: the model with the effects added: {e}"))?;
-        let theta = super::parse_theta(&model, args.at.theta.as_deref(), "--theta")?;
-        (model, theta)
-    };
+    let (model, theta) = model_at_theta(args)?;
     crate::core::numerics_for(&model);
+    check_args(args, &model)?;
+    let time = chrono::DateTime::parse_from_rfc3339(&args.time)
+        .map_err(|e| anyhow::anyhow!("--time `{}`: {e}", args.time))?
+        .with_timezone(&chrono::Utc);
+    let modes = simulate(args, &model, &theta)?;
+    let set = modal_set(args, &model, &theta, time, &modes);
+    write_json(&args.out, &set.to_json())?;
+    print_modes(args, &model, &modes);
+    Ok(())
+}
+
+/// The model and θ of `--model`/`--theta`, with the `--inject` effects added to the model's
+/// description before it is built.
+fn model_at_theta(args: &SimulateArgs) -> Result<(Model, Vec<f64>)> {
+    if args.inject.is_empty() {
+        return args.at.load();
+    }
+    let (mut description, _) = super::load_description(&args.at.model)?;
+    for s in &args.inject {
+        Injection::parse(s)
+            .and_then(|i| i.apply(&mut description))
+            .map_err(|e| anyhow::anyhow!("--inject {e}"))?;
+    }
+    let model = description
+        .build()
+        .map_err(|e| anyhow::anyhow!("--inject: the model with the effects added: {e}"))?;
+    let theta = super::parse_theta(&model, args.at.theta.as_deref(), "--theta")?;
+    Ok((model, theta))
+}
+
+/// Refuses a negative or non-finite noise level, and a number of modes outside 1..=DOFs.
+fn check_args(args: &SimulateArgs, model: &Model) -> Result<()> {
     for (name, v) in [
         ("--freq-cov", args.freq_cov),
         ("--shape-nsd", args.shape_nsd),
@@ -79,9 +101,12 @@ pub fn run(args: &SimulateArgs) -> Result<()> {
             model.n_dof()
         );
     }
-    let time = chrono::DateTime::parse_from_rfc3339(&args.time)
-        .map_err(|e| anyhow::anyhow!("--time `{}`: {e}", args.time))?
-        .with_timezone(&chrono::Utc);
+    Ok(())
+}
+
+/// The lowest `--modes` modes of the model at θ, with the noise asked for (none with
+/// `--noise-free`) drawn from ChaCha8 seeded by `--seed`.
+fn simulate(args: &SimulateArgs, model: &Model, theta: &[f64]) -> Result<Vec<SimulatedMode>> {
     let noise = if args.noise_free {
         Noise {
             frequency_cov: 0.0,
@@ -93,11 +118,23 @@ pub fn run(args: &SimulateArgs) -> Result<()> {
             shape_nsd: args.shape_nsd,
         }
     };
-    let mut solver = solver_for(&model)?;
+    let mut solver = solver_for(model)?;
     let mut rng = ChaCha8Rng::seed_from_u64(args.seed);
-    let modes = simulate_modes(&model, &mut *solver, &theta, args.modes, noise, &mut rng)?;
+    let modes = simulate_modes(model, &mut *solver, theta, args.modes, noise, &mut rng)?;
+    Ok(modes)
+}
+
+/// The modal set of the simulated modes: the stated uncertainties (where positive) and, as
+/// its source, the command line that reproduces it.
+fn modal_set(
+    args: &SimulateArgs,
+    model: &Model,
+    theta: &[f64],
+    time: DateTime<Utc>,
+    modes: &[SimulatedMode],
+) -> ModalSet {
     let positive = |v: f64| (v > 0.0).then_some(v);
-    let set = ModalSet {
+    ModalSet {
         structure: model.name.clone(),
         time,
         channels: model.channels().iter().map(|c| c.name.clone()).collect(),
@@ -115,25 +152,33 @@ pub fn run(args: &SimulateArgs) -> Result<()> {
             })
             .collect(),
         temperature_c: None,
-        source: Some(format!(
-            "boltwatch simulate --theta {} --seed {}{}{}",
-            theta
-                .iter()
-                .map(|v| v.to_string())
-                .collect::<Vec<_>>()
-                .join(","),
-            args.seed,
-            if args.noise_free { " --noise-free" } else { "" },
-            args.inject
-                .iter()
-                .map(|i| format!(" --inject {i}"))
-                .collect::<String>()
-        )),
+        source: Some(source(args, theta)),
         missing: Vec::new(),
         unexplained_peaks: Vec::new(),
         covariates: Default::default(),
-    };
-    write_json(&args.out, &set.to_json())?;
+    }
+}
+
+/// The `boltwatch simulate` command line (θ, seed, noise, injections) that made the set.
+fn source(args: &SimulateArgs, theta: &[f64]) -> String {
+    format!(
+        "boltwatch simulate --theta {} --seed {}{}{}",
+        theta
+            .iter()
+            .map(|v| v.to_string())
+            .collect::<Vec<_>>()
+            .join(","),
+        args.seed,
+        if args.noise_free { " --noise-free" } else { "" },
+        args.inject
+            .iter()
+            .map(|i| format!(" --inject {i}"))
+            .collect::<String>()
+    )
+}
+
+/// Where the set went, then its frequencies, one mode a line.
+fn print_modes(args: &SimulateArgs, model: &Model, modes: &[SimulatedMode]) {
     println!(
         "{} modes of `{}` written to {}",
         modes.len(),
@@ -144,5 +189,4 @@ pub fn run(args: &SimulateArgs) -> Result<()> {
     for (k, m) in modes.iter().enumerate() {
         println!("{:>4}  {:>12.4}", k + 1, m.frequency_hz);
     }
-    Ok(())
 }

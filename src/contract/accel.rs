@@ -118,6 +118,9 @@ fn reject(field: &str, reason: impl Into<String>) -> Rejection {
 }
 
 /// Decodes and checks one payload: every rejection names the field and says why.
+///
+/// The checks run in wire-contract order: the rate, the channels, the units, the encoding,
+/// the sample count, then the data.
 pub fn parse_accel(payload: &[u8]) -> Result<AccelBlock, Rejection> {
     let a: Accel = serde_json::from_slice(payload)
         .map_err(|e| reject("payload", format!("not a boltwatch.accel.v1 block: {e}")))?;
@@ -127,13 +130,28 @@ pub fn parse_accel(payload: &[u8]) -> Result<AccelBlock, Rejection> {
             format!("{} is not a rate (finite, > 0)", a.rate_hz),
         ));
     }
-    let r = a.channels.len();
-    if r == 0 {
+    check_channels(&a.channels)?;
+    let (quantities, factors) = parse_units(&a.units, a.channels.len())?;
+    let width = encoding_width(&a.encoding)?;
+    let count = value_count(a.samples, a.channels.len())?;
+    let values = decode_values(&a, width, count, &factors)?;
+    Ok(AccelBlock {
+        structure: a.structure,
+        start: a.start,
+        rate_hz: a.rate_hz,
+        channels: a.channels,
+        quantities,
+        values,
+    })
+}
+
+/// Refuses a block without channels, and the first channel that is unnamed or named twice.
+fn check_channels(channels: &[String]) -> Result<(), Rejection> {
+    if channels.is_empty() {
         return Err(reject("channels", "no channels"));
     }
     let mut seen = std::collections::HashSet::new();
-    if let Some((i, c)) = a
-        .channels
+    if let Some((i, c)) = channels
         .iter()
         .enumerate()
         .find(|(_, c)| c.is_empty() || !seen.insert(c.as_str()))
@@ -143,42 +161,66 @@ pub fn parse_accel(payload: &[u8]) -> Result<AccelBlock, Rejection> {
             format!("`{c}` is empty or named twice"),
         ));
     }
-    if a.units.len() != r {
+    Ok(())
+}
+
+/// One unit per channel (`r` of them): each channel's quantity and its factor to SI.
+fn parse_units(units: &[String], r: usize) -> Result<(Vec<Quantity>, Vec<f64>), Rejection> {
+    if units.len() != r {
         return Err(reject(
             "units",
-            format!("{} units for {r} channels", a.units.len()),
+            format!("{} units for {r} channels", units.len()),
         ));
     }
     let mut quantities = Vec::with_capacity(r);
     let mut factors = Vec::with_capacity(r);
-    for (i, u) in a.units.iter().enumerate() {
+    for (i, u) in units.iter().enumerate() {
         let (q, f) = parse_unit(u).map_err(|e| reject(&format!("units[{i}]"), e))?;
         quantities.push(q);
         factors.push(f);
     }
-    let width = match a.encoding.as_str() {
-        "f32le" => 4,
-        "f64le" => 8,
-        e => {
-            return Err(reject(
-                "encoding",
-                format!("`{e}` is not an encoding (f32le, f64le)"),
-            ));
-        }
-    };
-    if a.samples == 0 {
+    Ok((quantities, factors))
+}
+
+/// Bytes per value of `encoding`: 4 for `f32le`, 8 for `f64le`.
+fn encoding_width(encoding: &str) -> Result<usize, Rejection> {
+    match encoding {
+        "f32le" => Ok(4),
+        "f64le" => Ok(8),
+        e => Err(reject(
+            "encoding",
+            format!("`{e}` is not an encoding (f32le, f64le)"),
+        )),
+    }
+}
+
+/// The values (`samples` × `r` channels) a block carries: at least one sample, at most
+/// [`MAX_BLOCK_VALUES`].
+fn value_count(samples: usize, r: usize) -> Result<usize, Rejection> {
+    if samples == 0 {
         return Err(reject("samples", "no samples"));
     }
-    let count = a.samples.checked_mul(r).filter(|&n| n <= MAX_BLOCK_VALUES);
+    let count = samples.checked_mul(r).filter(|&n| n <= MAX_BLOCK_VALUES);
     let Some(count) = count else {
         return Err(reject(
             "samples",
             format!(
-                "{} samples of {r} channels exceed the {MAX_BLOCK_VALUES} values a block may carry",
-                a.samples
+                "{samples} samples of {r} channels exceed the {MAX_BLOCK_VALUES} values a block may carry"
             ),
         ));
     };
+    Ok(count)
+}
+
+/// The `count` values of `data`, `width` bytes each, scaled to SI by their channel's factor:
+/// base64 of exactly that many bytes, every value finite.
+fn decode_values(
+    a: &Accel,
+    width: usize,
+    count: usize,
+    factors: &[f64],
+) -> Result<Vec<f64>, Rejection> {
+    let r = a.channels.len();
     let bytes = BASE64
         .decode(a.data.as_bytes())
         .map_err(|e| reject("data", format!("not base64: {e}")))?;
@@ -209,14 +251,7 @@ pub fn parse_accel(payload: &[u8]) -> Result<AccelBlock, Rejection> {
         }
         values.push(v * factors[k % r]);
     }
-    Ok(AccelBlock {
-        structure: a.structure,
-        start: a.start,
-        rate_hz: a.rate_hz,
-        channels: a.channels,
-        quantities,
-        values,
-    })
+    Ok(values)
 }
 
 #[cfg(test)]

@@ -230,101 +230,129 @@ struct Structures(Vec<Arc<Shared>>);
 impl Collector for Structures {
     fn encode(&self, mut enc: DescriptorEncoder) -> std::fmt::Result {
         let all: Vec<(&Shared, Status)> = self.0.iter().map(|s| (&**s, s.status())).collect();
-        type Getter = fn(&Shared, &Status) -> u64;
-        let counters: [(&str, &str, Getter); 10] = [
-            (
-                "boltwatch_sets_received",
-                "Modal sets received over Zenoh.",
-                |s, _| s.received.load(Ordering::Relaxed),
-            ),
-            (
-                "boltwatch_sets_processed",
-                "Modal sets accepted and tracked.",
-                |_, st| st.accepted,
-            ),
-            (
-                "boltwatch_sets_rejected",
-                "Modal sets rejected (published on rejected).",
-                |_, st| st.rejected,
-            ),
-            (
-                "boltwatch_sets_dropped",
-                "Modal sets dropped at a full queue.",
-                |s, _| s.dropped.load(Ordering::Relaxed),
-            ),
-            (
-                "boltwatch_cold_starts",
-                "Updates redone from the baseline.",
-                |_, st| st.cold_starts,
-            ),
-            (
-                "boltwatch_crosschecks_skipped",
-                "Cross-checks skipped: the previous one was still running.",
-                |_, st| st.crosschecks_skipped,
-            ),
-            (
-                "boltwatch_sets_duplicate",
-                "Modal sets skipped as already handled (re-delivered after a restart).",
-                |_, st| st.duplicates,
-            ),
-            (
-                "boltwatch_sets_replayed",
-                "Modal sets handled again at start from the write-ahead log.",
-                |_, st| st.replayed,
-            ),
-            (
-                "boltwatch_sets_failed",
-                "Modal sets rejected because tracking them failed (an error or a panic).",
-                |_, st| st.failed,
-            ),
-            (
-                "boltwatch_wal_syncs",
-                "Group commits (fsyncs) of the write-ahead log.",
-                |_, st| st.wal.syncs,
-            ),
-        ];
-        for (name, help, get) in counters {
-            let mut family = enc.encode_descriptor(name, help, None, MetricType::Counter)?;
-            for (s, st) in &all {
-                let labels = [("structure", s.structure.as_str())];
-                ConstCounter::new(get(s, st)).encode(family.encode_family(&labels)?)?;
-            }
-        }
-        let mut family = enc.encode_descriptor(
-            "boltwatch_queue_depth",
-            "Modal sets waiting in the queue.",
-            None,
-            MetricType::Gauge,
-        )?;
-        for (s, _) in &all {
-            let labels = [("structure", s.structure.as_str())];
-            ConstGauge::new(s.depth.load(Ordering::Relaxed))
-                .encode(family.encode_family(&labels)?)?;
-        }
-        let mut family = enc.encode_descriptor(
-            "boltwatch_update_seconds",
-            "Time to process one modal set (validation, update, filters, alerts).",
-            None,
-            MetricType::Histogram,
-        )?;
-        for (s, _) in &all {
-            let labels = [("structure", s.structure.as_str())];
-            s.latency.buckets.encode(family.encode_family(&labels)?)?;
-        }
-        let mut family = enc.encode_descriptor(
-            "boltwatch_theta",
-            "Latest estimate of each parameter θ (stiffness relative to nominal).",
-            None,
-            MetricType::Gauge,
-        )?;
-        for (s, st) in &all {
-            for p in st.last_estimate.iter().flat_map(|e| &e.parameters) {
-                let labels = [("structure", s.structure.as_str()), ("parameter", &p.name)];
-                ConstGauge::new(p.theta).encode(family.encode_family(&labels)?)?;
-            }
-        }
-        Ok(())
+        encode_counters(&mut enc, &all)?;
+        encode_queue_depth(&mut enc, &all)?;
+        encode_latency(&mut enc, &all)?;
+        encode_theta(&mut enc, &all)
     }
+}
+
+/// How a counter's value is read from a structure's shared state and status.
+type Getter = fn(&Shared, &Status) -> u64;
+
+/// The counters: name, help and how each is read.
+fn counters() -> [(&'static str, &'static str, Getter); 10] {
+    [
+        (
+            "boltwatch_sets_received",
+            "Modal sets received over Zenoh.",
+            |s, _| s.received.load(Ordering::Relaxed),
+        ),
+        (
+            "boltwatch_sets_processed",
+            "Modal sets accepted and tracked.",
+            |_, st| st.accepted,
+        ),
+        (
+            "boltwatch_sets_rejected",
+            "Modal sets rejected (published on rejected).",
+            |_, st| st.rejected,
+        ),
+        (
+            "boltwatch_sets_dropped",
+            "Modal sets dropped at a full queue.",
+            |s, _| s.dropped.load(Ordering::Relaxed),
+        ),
+        (
+            "boltwatch_cold_starts",
+            "Updates redone from the baseline.",
+            |_, st| st.cold_starts,
+        ),
+        (
+            "boltwatch_crosschecks_skipped",
+            "Cross-checks skipped: the previous one was still running.",
+            |_, st| st.crosschecks_skipped,
+        ),
+        (
+            "boltwatch_sets_duplicate",
+            "Modal sets skipped as already handled (re-delivered after a restart).",
+            |_, st| st.duplicates,
+        ),
+        (
+            "boltwatch_sets_replayed",
+            "Modal sets handled again at start from the write-ahead log.",
+            |_, st| st.replayed,
+        ),
+        (
+            "boltwatch_sets_failed",
+            "Modal sets rejected because tracking them failed (an error or a panic).",
+            |_, st| st.failed,
+        ),
+        (
+            "boltwatch_wal_syncs",
+            "Group commits (fsyncs) of the write-ahead log.",
+            |_, st| st.wal.syncs,
+        ),
+    ]
+}
+
+/// Each counter of [`counters`], one sample per structure.
+fn encode_counters(enc: &mut DescriptorEncoder, all: &[(&Shared, Status)]) -> std::fmt::Result {
+    for (name, help, get) in counters() {
+        let mut family = enc.encode_descriptor(name, help, None, MetricType::Counter)?;
+        for (s, st) in all {
+            let labels = [("structure", s.structure.as_str())];
+            ConstCounter::new(get(s, st)).encode(family.encode_family(&labels)?)?;
+        }
+    }
+    Ok(())
+}
+
+/// The queue depth gauge, one sample per structure.
+fn encode_queue_depth(enc: &mut DescriptorEncoder, all: &[(&Shared, Status)]) -> std::fmt::Result {
+    let mut family = enc.encode_descriptor(
+        "boltwatch_queue_depth",
+        "Modal sets waiting in the queue.",
+        None,
+        MetricType::Gauge,
+    )?;
+    for (s, _) in all {
+        let labels = [("structure", s.structure.as_str())];
+        ConstGauge::new(s.depth.load(Ordering::Relaxed)).encode(family.encode_family(&labels)?)?;
+    }
+    Ok(())
+}
+
+/// The update-latency histogram, one per structure.
+fn encode_latency(enc: &mut DescriptorEncoder, all: &[(&Shared, Status)]) -> std::fmt::Result {
+    let mut family = enc.encode_descriptor(
+        "boltwatch_update_seconds",
+        "Time to process one modal set (validation, update, filters, alerts).",
+        None,
+        MetricType::Histogram,
+    )?;
+    for (s, _) in all {
+        let labels = [("structure", s.structure.as_str())];
+        s.latency.buckets.encode(family.encode_family(&labels)?)?;
+    }
+    Ok(())
+}
+
+/// The latest θ of each parameter, one gauge per structure and parameter.
+fn encode_theta(enc: &mut DescriptorEncoder, all: &[(&Shared, Status)]) -> std::fmt::Result {
+    let mut family = enc.encode_descriptor(
+        "boltwatch_theta",
+        "Latest estimate of each parameter θ (stiffness relative to nominal).",
+        None,
+        MetricType::Gauge,
+    )?;
+    for (s, st) in all {
+        for p in st.last_estimate.iter().flat_map(|e| &e.parameters) {
+            let labels = [("structure", s.structure.as_str()), ("parameter", &p.name)];
+            ConstGauge::new(p.theta).encode(family.encode_family(&labels)?)?;
+        }
+    }
+    Ok(())
 }
 
 /// Serves `GET /metrics` (and `GET /`) on `listener` until the task is dropped.

@@ -200,52 +200,7 @@ impl Tracker {
         judgement: &Normalisation,
     ) -> Estimate {
         let res = &fit.result;
-        let st = &self.state;
-        let alerts_off = alerts_off(&self.cfg.alerts, &self.is_connection, st);
-        let normalised = |l: usize| {
-            let j = judgement.as_ref()?.as_ref().ok()?;
-            let n = j.parameters[l];
-            let [lo, hi] = n.loss_band();
-            Some(NormalisedLevel {
-                expected: n.expected,
-                expected_lower95: n.lower95,
-                expected_upper95: n.upper95,
-                z: n.z,
-                loss: n.loss(),
-                loss_lower95: lo,
-                loss_upper95: hi,
-            })
-        };
-        let parameters = self
-            .model
-            .parameters()
-            .iter()
-            .enumerate()
-            .map(|(l, p)| {
-                let f = st.filters[l].estimate();
-                let b = st.baseline.as_ref().map(|b| b[l]);
-                ParameterEstimate {
-                    name: p.name.clone(),
-                    theta: res.theta[l],
-                    std: finite(std[l]),
-                    lower95: finite(res.theta[l] - Z95 * std[l]),
-                    upper95: finite(res.theta[l] + Z95 * std[l]),
-                    baseline: b,
-                    change: b.map(|b| (res.theta[l] - b) / b),
-                    stiffness: self.k_nominal[l].map(|k| k * res.theta[l]),
-                    filtered: FilteredLevel {
-                        level: f.level,
-                        trend_per_day: f.trend,
-                        std: f.std,
-                        lower95: f.lower95,
-                        upper95: f.upper95,
-                        change: b.map(|b| (f.level - b) / b),
-                    },
-                    alerts_off: alerts_off[l].clone(),
-                    normalised: normalised(l),
-                }
-            })
-            .collect();
+        let parameters = self.parameter_estimates(fit, std, judgement);
         Estimate {
             schema: Schema::new(),
             id: output_id(&self.model.name, set.time, "stiffness", 0),
@@ -271,6 +226,49 @@ impl Tracker {
                 .collect(),
             weights: fit.weights.clone(),
         }
+    }
+
+    /// Each parameter's entry in the estimate: the set's θ with its σ and 95 % band, the
+    /// change from the baseline, the stiffness, the drift filter's level, why its alerts are
+    /// off (if they are) and the level normalised for the set's conditions.
+    fn parameter_estimates(
+        &self,
+        fit: &SetFit,
+        std: &[f64],
+        judgement: &Normalisation,
+    ) -> Vec<ParameterEstimate> {
+        let res = &fit.result;
+        let st = &self.state;
+        let alerts_off = alerts_off(&self.cfg.alerts, &self.is_connection, st);
+        self.model
+            .parameters()
+            .iter()
+            .enumerate()
+            .map(|(l, p)| {
+                let f = st.filters[l].estimate();
+                let b = st.baseline.as_ref().map(|b| b[l]);
+                ParameterEstimate {
+                    name: p.name.clone(),
+                    theta: res.theta[l],
+                    std: finite(std[l]),
+                    lower95: finite(res.theta[l] - Z95 * std[l]),
+                    upper95: finite(res.theta[l] + Z95 * std[l]),
+                    baseline: b,
+                    change: b.map(|b| (res.theta[l] - b) / b),
+                    stiffness: self.k_nominal[l].map(|k| k * res.theta[l]),
+                    filtered: FilteredLevel {
+                        level: f.level,
+                        trend_per_day: f.trend,
+                        std: f.std,
+                        lower95: f.lower95,
+                        upper95: f.upper95,
+                        change: b.map(|b| (f.level - b) / b),
+                    },
+                    alerts_off: alerts_off[l].clone(),
+                    normalised: normalised_level(judgement, l),
+                }
+            })
+            .collect()
     }
 
     /// The model-inadequacy alert on ε (and the diagnosis of a warning).
@@ -454,6 +452,23 @@ fn not_finite(theta: &[f64], std: &[f64], epsilon: f64) -> Option<String> {
     bad("θ", theta)
         .or_else(|| bad("σ", std))
         .or_else(|| bad("ε", &[epsilon]))
+}
+
+/// Parameter `l` judged against its expectation under the set's conditions: `None` when
+/// the normalisation is off, the fit did not converge or no expectation was available.
+fn normalised_level(judgement: &Normalisation, l: usize) -> Option<NormalisedLevel> {
+    let j = judgement.as_ref()?.as_ref().ok()?;
+    let n = j.parameters[l];
+    let [lo, hi] = n.loss_band();
+    Some(NormalisedLevel {
+        expected: n.expected,
+        expected_lower95: n.lower95,
+        expected_upper95: n.upper95,
+        z: n.z,
+        loss: n.loss(),
+        loss_lower95: lo,
+        loss_upper95: hi,
+    })
 }
 
 fn normalisation_doc(j: &Result<Judgement, String>) -> NormalisationDoc {

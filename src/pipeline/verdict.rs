@@ -7,7 +7,7 @@
 use super::{DiagnoseRequest, measured_data};
 use crate::contract::alert::NamedEffect;
 use crate::contract::{Alert, AlertDetail, AlertKind, AlertLevel, Schema, Verdict, finite};
-use crate::core::diagnosis::{Description, DiagnosisOptions, diagnose};
+use crate::core::diagnosis::{Description, Diagnosis, DiagnosisOptions, Named, diagnose};
 use crate::core::model::Model;
 use crate::core::model::spec::ModelSpec;
 
@@ -32,75 +32,7 @@ pub fn diagnosis_alert(
     )
     .map_err(|e| e.to_string());
     let (diagnosis, message) = match diagnosed {
-        Ok(d) => {
-            let named = d
-                .named
-                .iter()
-                .map(|n| NamedEffect {
-                    effect: n.refit.effect.into(),
-                    location: n.refit.location.clone(),
-                    value: n.refit.value,
-                    std: finite(n.refit.std),
-                    unit: n.refit.unit.into(),
-                    likelihood_ratio: n.likelihood_ratio,
-                    indistinguishable_from: n
-                        .indistinguishable_from
-                        .iter()
-                        .map(|o| format!("{}@{}", o.effect, o.location))
-                        .collect(),
-                })
-                .collect();
-            let message = if d.named.is_empty() {
-                format!(
-                    "diagnosis of the model-inadequacy warning: no candidate effect is significant \
-                     (ε {:.1} of the fitted model; {} candidates, Λ threshold {:.1}); \
-                     the misfit is not one of the catalogued effects",
-                    d.before.epsilon, d.n_candidates, d.threshold
-                )
-            } else {
-                format!(
-                    "diagnosis of the model-inadequacy warning: {}; ε {:.1} -> {:.1} with it in the model",
-                    d.named
-                        .iter()
-                        .map(|n| {
-                            let alt = if n.indistinguishable_from.is_empty() {
-                                String::new()
-                            } else {
-                                format!(
-                                    " (or {})",
-                                    n.indistinguishable_from
-                                        .iter()
-                                        .map(|o| o.location.as_str())
-                                        .collect::<Vec<_>>()
-                                        .join(", ")
-                                )
-                            };
-                            format!(
-                                "{}@{}{alt} = {:.3e} ± {:.1e} {}",
-                                n.refit.effect,
-                                n.refit.location,
-                                n.refit.value,
-                                n.refit.std,
-                                n.refit.unit
-                            )
-                        })
-                        .collect::<Vec<_>>()
-                        .join(", "),
-                    d.before.epsilon,
-                    d.after.epsilon
-                )
-            };
-            (
-                Verdict::Found {
-                    named,
-                    epsilon_before: d.before.epsilon,
-                    epsilon_after: d.after.epsilon,
-                    candidates: d.n_candidates,
-                    threshold: d.threshold,
-                },
-                message,
-            )
-        }
+        Ok(d) => found(&d),
         Err(e) => (
             Verdict::Failed { error: e.clone() },
             format!("diagnosis of the model-inadequacy warning failed: {e}"),
@@ -122,4 +54,81 @@ pub fn diagnosis_alert(
             diagnosis: Some(diagnosis),
         },
     }
+}
+
+/// The verdict of a diagnosis that ran, and the alert's message naming it.
+fn found(d: &Diagnosis) -> (Verdict, String) {
+    let named = d.named.iter().map(named_effect).collect();
+    let message = found_message(d);
+    (
+        Verdict::Found {
+            named,
+            epsilon_before: d.before.epsilon,
+            epsilon_after: d.after.epsilon,
+            candidates: d.n_candidates,
+            threshold: d.threshold,
+        },
+        message,
+    )
+}
+
+/// One named effect as the alert carries it.
+fn named_effect(n: &Named) -> NamedEffect {
+    NamedEffect {
+        effect: n.refit.effect.into(),
+        location: n.refit.location.clone(),
+        value: n.refit.value,
+        std: finite(n.refit.std),
+        unit: n.refit.unit.into(),
+        likelihood_ratio: n.likelihood_ratio,
+        indistinguishable_from: n
+            .indistinguishable_from
+            .iter()
+            .map(|o| format!("{}@{}", o.effect, o.location))
+            .collect(),
+    }
+}
+
+/// The message of a diagnosis that ran: the effects named and ε with them in the model,
+/// or that none is significant.
+fn found_message(d: &Diagnosis) -> String {
+    if d.named.is_empty() {
+        format!(
+            "diagnosis of the model-inadequacy warning: no candidate effect is significant \
+             (ε {:.1} of the fitted model; {} candidates, Λ threshold {:.1}); \
+             the misfit is not one of the catalogued effects",
+            d.before.epsilon, d.n_candidates, d.threshold
+        )
+    } else {
+        format!(
+            "diagnosis of the model-inadequacy warning: {}; ε {:.1} -> {:.1} with it in the model",
+            d.named
+                .iter()
+                .map(effect_summary)
+                .collect::<Vec<_>>()
+                .join(", "),
+            d.before.epsilon,
+            d.after.epsilon
+        )
+    }
+}
+
+/// One named effect in the message: `effect@location (or …) = value ± std unit`.
+fn effect_summary(n: &Named) -> String {
+    let alt = if n.indistinguishable_from.is_empty() {
+        String::new()
+    } else {
+        format!(
+            " (or {})",
+            n.indistinguishable_from
+                .iter()
+                .map(|o| o.location.as_str())
+                .collect::<Vec<_>>()
+                .join(", ")
+        )
+    };
+    format!(
+        "{}@{}{alt} = {:.3e} ± {:.1e} {}",
+        n.refit.effect, n.refit.location, n.refit.value, n.refit.std, n.refit.unit
+    )
 }

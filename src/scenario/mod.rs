@@ -104,66 +104,7 @@ impl Scenario {
         connection: Option<&str>,
         at: Option<&str>,
     ) -> Result<Self, ScenarioError> {
-        let find_conn = || -> Result<usize, ScenarioError> {
-            let params = model.parameters();
-            match connection {
-                Some(c) => params
-                    .iter()
-                    .position(|p| p.name == c && matches!(p.kind, ParameterKind::Connections(_)))
-                    .ok_or_else(|| {
-                        ScenarioError::Invalid(format!(
-                            "--connection {c}: not a connection parameter of {}",
-                            model.name
-                        ))
-                    }),
-                None => params
-                    .iter()
-                    .position(|p| matches!(p.kind, ParameterKind::Connections(_)))
-                    .ok_or_else(|| {
-                        ScenarioError::Invalid(format!(
-                            "{} has no connection parameter",
-                            model.name
-                        ))
-                    }),
-            }
-        };
-        let event = match name {
-            "healthy" | "seasonal" => Event::None,
-            "loosening" => Event::Loosening {
-                parameter: find_conn()?,
-                start_day: 40.0,
-                duration_days: 10.0,
-                loss: 0.5,
-            },
-            "sudden" => Event::Sudden {
-                parameter: find_conn()?,
-                day: 30.0,
-                loss: 0.6,
-            },
-            "mass" => Event::Mass {
-                at: match at {
-                    Some(a) => a.to_string(),
-                    None => {
-                        let mut nodes: Vec<&str> = model
-                            .connections()
-                            .iter()
-                            .map(|c| c.node.as_str())
-                            .collect();
-                        nodes.dedup();
-                        nodes
-                            .get(1)
-                            .or(nodes.first())
-                            .ok_or_else(|| {
-                                ScenarioError::Invalid(format!("{} has no connections", model.name))
-                            })?
-                            .to_string()
-                    }
-                },
-                mass: 0.8,
-                day: 30.0,
-            },
-            other => return Err(ScenarioError::Unknown(other.to_string())),
-        };
+        let event = named_event(name, model, connection, at)?;
         Ok(Self {
             name: name.to_string(),
             sets: 10_000,
@@ -343,4 +284,76 @@ impl Scenario {
         }
         Ok(())
     }
+}
+
+/// The event of scenario `name` with its defaults (module docs), on `connection` or at
+/// `at` where it needs one; an unknown name is an error.
+fn named_event(
+    name: &str,
+    model: &Model,
+    connection: Option<&str>,
+    at: Option<&str>,
+) -> Result<Event, ScenarioError> {
+    Ok(match name {
+        "healthy" | "seasonal" => Event::None,
+        "loosening" => Event::Loosening {
+            parameter: connection_parameter(model, connection)?,
+            start_day: 40.0,
+            duration_days: 10.0,
+            loss: 0.5,
+        },
+        "sudden" => Event::Sudden {
+            parameter: connection_parameter(model, connection)?,
+            day: 30.0,
+            loss: 0.6,
+        },
+        "mass" => Event::Mass {
+            at: mass_node(model, at)?,
+            mass: 0.8,
+            day: 30.0,
+        },
+        other => return Err(ScenarioError::Unknown(other.to_string())),
+    })
+}
+
+/// The index of connection parameter `connection` of `model`, else of its first connection
+/// parameter.
+fn connection_parameter(model: &Model, connection: Option<&str>) -> Result<usize, ScenarioError> {
+    let params = model.parameters();
+    match connection {
+        Some(c) => params
+            .iter()
+            .position(|p| p.name == c && matches!(p.kind, ParameterKind::Connections(_)))
+            .ok_or_else(|| {
+                ScenarioError::Invalid(format!(
+                    "--connection {c}: not a connection parameter of {}",
+                    model.name
+                ))
+            }),
+        None => params
+            .iter()
+            .position(|p| matches!(p.kind, ParameterKind::Connections(_)))
+            .ok_or_else(|| {
+                ScenarioError::Invalid(format!("{} has no connection parameter", model.name))
+            }),
+    }
+}
+
+/// The node the mass is fixed to: `at`, else the second node named in the model's
+/// connections (the first when there is one only).
+fn mass_node(model: &Model, at: Option<&str>) -> Result<String, ScenarioError> {
+    if let Some(a) = at {
+        return Ok(a.to_string());
+    }
+    let mut nodes: Vec<&str> = model
+        .connections()
+        .iter()
+        .map(|c| c.node.as_str())
+        .collect();
+    nodes.dedup();
+    Ok(nodes
+        .get(1)
+        .or(nodes.first())
+        .ok_or_else(|| ScenarioError::Invalid(format!("{} has no connections", model.name)))?
+        .to_string())
 }

@@ -18,6 +18,8 @@
 //! the end of the page it is stopped with SIGINT and must exit 0. The daemon listens on its
 //! default loopback ports, so pages run one after the other.
 //!
+//! `BOLTWATCH_EXAMPLES=<text>` runs only the pages whose path contains the text.
+//!
 //! Slow tier (`cargo test --features slow-tests`).
 
 use std::io::Read;
@@ -282,8 +284,13 @@ fn run_page(page: &Path) -> (usize, usize) {
     ignore = "slow tier: cargo test --features slow-tests"
 )]
 fn every_shell_example_in_the_readme_and_the_guide_runs() {
+    // `BOLTWATCH_EXAMPLES=docs/models.md` runs the pages whose path contains that text.
+    let only = std::env::var("BOLTWATCH_EXAMPLES").unwrap_or_default();
     let (mut ran, mut skipped) = (0, 0);
-    for page in pages() {
+    for page in pages()
+        .into_iter()
+        .filter(|p| p.to_string_lossy().contains(&only))
+    {
         let (r, s) = run_page(&page);
         ran += r;
         skipped += s;

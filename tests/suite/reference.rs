@@ -234,8 +234,9 @@ fn every_command_option_is_documented_with_its_default() {
     }
 }
 
-/// The items a code span names: `a::b::C::{f, g}` → `f`, `g`; `a::b::f` → `f`.
-fn named_items(span: &str) -> Vec<String> {
+/// The items a code span names: `a::b::C::{f, g}` → `f`, `g`; `a::b::f` → `f`; an enum's
+/// variant `a::E::V` → `E` (with the variant checked by the caller).
+fn named_items(span: &str) -> Vec<(String, Option<String>)> {
     let ident = |s: &str| -> String {
         s.trim()
             .chars()
@@ -243,14 +244,58 @@ fn named_items(span: &str) -> Vec<String> {
             .collect()
     };
     if let Some((_, group)) = span.split_once("::{") {
-        return group.trim_end_matches('}').split(',').map(ident).collect();
+        return group
+            .trim_end_matches('}')
+            .split(',')
+            .map(|g| (ident(g), None))
+            .collect();
     }
-    vec![ident(span.rsplit("::").next().unwrap())]
+    let parts: Vec<String> = span.split("::").map(ident).collect();
+    let upper = |s: &str| s.starts_with(|c: char| c.is_uppercase());
+    match parts.as_slice() {
+        [.., ty, variant] if upper(ty) && upper(variant) => {
+            vec![(ty.clone(), Some(variant.clone()))]
+        }
+        [.., last] => vec![(last.clone(), None)],
+        [] => Vec::new(),
+    }
+}
+
+/// The text of a file, or of every `.rs` file under a folder.
+fn source_of(rel: &str) -> String {
+    let path = std::path::Path::new(ROOT).join(rel);
+    if path.is_file() {
+        return std::fs::read_to_string(path).unwrap();
+    }
+    assert!(
+        path.is_dir(),
+        "docs/paper.md names {rel}, which does not exist"
+    );
+    let mut out = String::new();
+    for entry in std::fs::read_dir(&path).unwrap() {
+        let p = entry.unwrap().path();
+        let rel = p.strip_prefix(ROOT).unwrap().to_string_lossy().into_owned();
+        if p.is_dir() || p.extension().is_some_and(|e| e == "rs") {
+            out += &source_of(&rel);
+        }
+    }
+    out
+}
+
+/// Whether `item` is defined (`fn`, `struct`, `enum`, `trait`, `type`, `const`) in `src`.
+fn defines(src: &str, item: &str) -> bool {
+    ["fn", "struct", "enum", "trait", "type", "const"]
+        .iter()
+        .any(|kw| {
+            ["(", " ", "<", ":"]
+                .iter()
+                .any(|e| src.contains(&format!("{kw} {item}{e}")))
+        })
 }
 
 /// `docs/paper.md` maps each equation to the functions that implement it and their files:
-/// every file exists, and every item named (`a::b::f`, `Type::{f, g}`) is defined
-/// (`fn`, `struct`, `enum`, `trait`, `type` or `const`) in one of the row's files.
+/// every file (or folder) exists, and every item named (`a::b::f`, `Type::{f, g}`, an
+/// enum's variant) is defined in one of the row's files.
 #[test]
 fn every_function_the_paper_map_names_is_in_its_file() {
     let mut checked = 0;
@@ -259,34 +304,24 @@ fn every_function_the_paper_map_names_is_in_its_file() {
             continue;
         }
         let c = cells(line);
-        let files: Vec<String> = c[3]
+        let (functions, files) = (&c[c.len() - 2], &c[c.len() - 1]);
+        let src: String = files
             .split('`')
             .filter(|p| p.starts_with("src/"))
-            .map(|p| {
-                std::fs::read_to_string(format!("{ROOT}/{p}"))
-                    .unwrap_or_else(|_| panic!("docs/paper.md names {p}, which does not exist"))
-            })
+            .map(source_of)
             .collect();
-        for span in c[2].split('`').skip(1).step_by(2) {
+        for span in functions.split('`').skip(1).step_by(2) {
             if !span.contains("::") || span.contains(' ') {
                 continue;
             }
-            for item in named_items(span) {
-                let defined = ["fn", "struct", "enum", "trait", "type", "const"]
-                    .iter()
-                    .any(|kw| {
-                        files.iter().any(|f| {
-                            f.contains(&format!("{kw} {item}("))
-                                || f.contains(&format!("{kw} {item} "))
-                                || f.contains(&format!("{kw} {item}<"))
-                                || f.contains(&format!("{kw} {item}:"))
-                        })
+            for (item, variant) in named_items(span) {
+                let ok = defines(&src, &item)
+                    && variant.as_ref().is_none_or(|v| {
+                        src.contains(&format!("{v},"))
+                            || src.contains(&format!("{v} {{"))
+                            || src.contains(&format!("{v}("))
                     });
-                assert!(
-                    defined,
-                    "docs/paper.md: `{span}` names `{item}`, not defined in {}",
-                    c[3]
-                );
+                assert!(ok, "docs/paper.md: `{span}` is not defined in {files}");
                 checked += 1;
             }
         }

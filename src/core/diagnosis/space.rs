@@ -289,6 +289,39 @@ pub fn splice(sf: &mut SpaceFrameSpec, location: &str, u: f64) -> Result<(), Dia
         return Ok(());
     }
     let m: Member3 = sf.members[mi].clone();
+    let (node, reference) = add_splice_node(sf, &m, k)?;
+    let (a, b) = (format!("{}~a", m.name), format!("{}~b", m.name));
+    follow_split(sf, &m, k, (&a, &node, &b));
+    let part = |name: &str, from: &str, to: &str, elements: usize| Member3 {
+        name: name.to_string(),
+        from: from.to_string(),
+        to: to.to_string(),
+        elements,
+        orientation: Some(reference),
+        ..m.clone()
+    };
+    sf.members[mi] = part(&a, &m.from, &node, k);
+    sf.members
+        .insert(mi + 1, part(&b, &node, &m.to, m.elements - k));
+    sf.connections.push(Connection3 {
+        name: Some(format!("splice@{}.{k}", m.name)),
+        member: b,
+        node,
+        torsion: None,
+        weak: (axis == AXES[1]).then_some(1.0 / u),
+        strong: (axis == AXES[2]).then_some(1.0 / u),
+    });
+    Ok(())
+}
+
+/// Adds the node `<member>.splice<k>` where member `m`'s mesh node `k` was (joint offsets
+/// included); returns its name and the member's reference vector, which both parts keep
+/// so that they keep the member's local axes.
+fn add_splice_node(
+    sf: &mut SpaceFrameSpec,
+    m: &Member3,
+    k: usize,
+) -> Result<(String, [f64; 3]), DiagnosisError> {
     let (pa, pb) = (
         sf.position(&m.from)
             .ok_or_else(|| unknown(&m.from, "a node"))?,
@@ -312,23 +345,31 @@ pub fn splice(sf: &mut SpaceFrameSpec, location: &str, u: f64) -> Result<(), Dia
         let r = crate::core::model::frame3d::default_reference(pa, pb);
         [r.x, r.y, r.z]
     });
-    let (a, b) = (format!("{}~a", m.name), format!("{}~b", m.name));
+    Ok((node, reference))
+}
+
+/// Moves everything that named member `m`, split at mesh node `k` into `parts` (`a`, the
+/// new node, `b`), to the part that now holds it: the connections at its ends, the
+/// parameters that scale it (both parts), and the locations `<member>.<j>` of channels,
+/// masses and springs.
+fn follow_split(sf: &mut SpaceFrameSpec, m: &Member3, k: usize, parts: (&str, &str, &str)) {
+    let (a, _, b) = parts;
     for c in sf.connections.iter_mut().filter(|c| c.member == m.name) {
         c.name = Some(c.name());
         c.member = if c.node == m.from {
-            a.clone()
+            a.to_string()
         } else {
-            b.clone()
+            b.to_string()
         };
     }
     for p in sf.parameters.iter_mut() {
         if let Some(i) = p.members.iter().position(|x| *x == m.name) {
-            p.members[i] = a.clone();
-            p.members.push(b.clone());
+            p.members[i] = a.to_string();
+            p.members.push(b.to_string());
         }
     }
     let relocate = |at: &mut String| {
-        relocate_split(at, &m.name, k, (&a, &node, &b));
+        relocate_split(at, &m.name, k, parts);
     };
     for c in sf.channels.iter_mut() {
         relocate(&mut c.at);
@@ -342,26 +383,6 @@ pub fn splice(sf: &mut SpaceFrameSpec, location: &str, u: f64) -> Result<(), Dia
             relocate(bn);
         }
     }
-    let part = |name: &str, from: &str, to: &str, elements: usize| Member3 {
-        name: name.to_string(),
-        from: from.to_string(),
-        to: to.to_string(),
-        elements,
-        orientation: Some(reference),
-        ..m.clone()
-    };
-    sf.members[mi] = part(&a, &m.from, &node, k);
-    sf.members
-        .insert(mi + 1, part(&b, &node, &m.to, m.elements - k));
-    sf.connections.push(Connection3 {
-        name: Some(format!("splice@{}.{k}", m.name)),
-        member: b,
-        node,
-        torsion: None,
-        weak: (axis == AXES[1]).then_some(1.0 / u),
-        strong: (axis == AXES[2]).then_some(1.0 / u),
-    });
-    Ok(())
 }
 
 /// A spring 100 times the member's EI/L about that axis.

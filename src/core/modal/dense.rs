@@ -167,96 +167,156 @@ impl EigenSolver for DenseEigen {
         n_modes: usize,
         strict: usize,
     ) -> Result<Option<TargetedPairs>, ModalError> {
-        let Some(block) = self.block.as_ref().filter(|b| {
-            self.warm
-                && b.theta.len() == theta.len()
-                && b.x.ncols() >= n_modes + GUARD_MODES.min(b.x.nrows() - n_modes)
-                && b.theta
-                    .iter()
-                    .zip(theta)
-                    .all(|(a, t)| (t / a).ln().abs() <= WARM_MAX_LOG_CHANGE)
-        }) else {
+        let Some(block) = self
+            .block
+            .as_ref()
+            .filter(|b| self.warm && starts_warm(b, theta, n_modes))
+        else {
             return Ok(None);
         };
-        let n = model.n_dof();
         check_mode_count(n_modes, model.n_finite_modes())?;
-        model.shifted_stiffness_values(theta, 0.0, &mut self.k_values);
-        let k_sparse =
-            SparseColMatRef::new(model.union_pattern().pattern.symbolic(), &self.k_values);
-        let Ok(llt) =
-            SparseLlt::try_new_with_symbolic(self.k_symbolic.clone(), k_sparse, Side::Lower)
+        let Some(llt) = sparse_stiffness_llt(model, theta, &mut self.k_values, &self.k_symbolic)
         else {
             return Ok(None);
         };
         let mut solve = |b: MatMut<'_, f64>| llt.solve_in_place(b);
         let strict = strict.min(n_modes);
-        let mut mphi = model.mass() * &block.x;
         // The first solves only advance the subspace (K⁻¹M)ᵏ span Φ, kept M-orthonormal;
         // the Rayleigh–Ritz steps that follow extract its best pairs from the same subspace
         // (the span, hence the result, is that of a Rayleigh–Ritz at every step, at a
         // fraction of the cost).
-        for _ in 0..WARM_PLAIN_STEPS {
-            let Some(mx) = orthonormal_inverse_iteration(&mut solve, model, mphi) else {
-                return Ok(None);
-            };
-            mphi = mx;
-        }
+        let Some(mphi) = plain_steps(&mut solve, model, model.mass() * &block.x) else {
+            return Ok(None);
+        };
         let mut residual = vec![f64::INFINITY; n_modes];
-        let mut done = false;
-        for _ in WARM_PLAIN_STEPS..WARM_MAX_STEPS {
-            let RitzStep {
-                lambda,
-                phi: next,
-                k_phi: kphi,
-                m_phi: next_mphi,
-            } = inverse_iteration_step(&mut solve, model, mphi, n_modes)?;
-            let phi = next;
-            mphi = next_mphi;
-            // ρ_k = ‖Kφ − λMφ‖ / ‖Kφ‖ for the wanted modes.
-            for k in 0..n_modes {
-                let (mut num, mut den) = (0.0, 0.0);
-                for i in 0..n {
-                    num += (kphi[(i, k)] - lambda[k] * mphi[(i, k)]).powi(2);
-                    den += kphi[(i, k)].powi(2);
-                }
-                residual[k] = (num / den).sqrt();
-            }
-            if residual[..strict].iter().all(|&r| r <= STRICT_RESIDUAL)
-                && residual.iter().all(|&r| r <= LOOSE_RESIDUAL)
-            {
-                done = true;
-                let q = lambda.len();
-                // Sturm count in the widest gap among the guard modes.
-                let Some(k) = (n_modes..q).max_by(|&a, &b| {
-                    (lambda[a] / lambda[a - 1]).total_cmp(&(lambda[b] / lambda[b - 1]))
-                }) else {
-                    return Ok(None);
-                };
-                let sigma = (lambda[k - 1] * lambda[k]).sqrt();
-                let Some(below) = self.count_below(model, theta, sigma) else {
-                    return Ok(None);
-                };
-                if below != k || check_positive(&lambda[..n_modes]).is_err() {
-                    return Ok(None);
-                }
-                self.block = Some(WarmBlock {
-                    theta: theta.to_vec(),
-                    n_modes,
-                    lambda,
-                    x: phi,
-                });
-                break;
-            }
-        }
-        if !done {
+        let Some(RitzStep { lambda, phi, .. }) =
+            ritz_steps(&mut solve, model, mphi, n_modes, strict, &mut residual)?
+        else {
+            return Ok(None);
+        };
+        if !self.sturm_confirms(model, theta, &lambda, n_modes) {
             return Ok(None);
         }
+        self.block = Some(WarmBlock {
+            theta: theta.to_vec(),
+            n_modes,
+            lambda,
+            x: phi,
+        });
         let pairs = self.block.as_ref().expect("set above").pairs();
         Ok(Some((pairs, residual)))
     }
 }
 
+/// Whether a warm solve may start from the block `b`: θ of the same length and within
+/// `WARM_MAX_LOG_CHANGE` of the block's in every component, and enough columns for the
+/// wanted modes and their guard modes.
+fn starts_warm(b: &WarmBlock, theta: &[f64], n_modes: usize) -> bool {
+    b.theta.len() == theta.len()
+        && b.x.ncols() >= n_modes + GUARD_MODES.min(b.x.nrows() - n_modes)
+        && b.theta
+            .iter()
+            .zip(theta)
+            .all(|(a, t)| (t / a).ln().abs() <= WARM_MAX_LOG_CHANGE)
+}
+
+/// `K(θ)` on the union pattern (into `k_values`) and its sparse Cholesky factor on the
+/// symbolic factorization `k_symbolic`; `None` if `K(θ)` is not positive definite.
+fn sparse_stiffness_llt(
+    model: &Model,
+    theta: &[f64],
+    k_values: &mut [f64],
+    k_symbolic: &SymbolicLlt<usize>,
+) -> Option<SparseLlt<usize, f64>> {
+    model.shifted_stiffness_values(theta, 0.0, k_values);
+    let k_sparse = SparseColMatRef::new(model.union_pattern().pattern.symbolic(), k_values);
+    SparseLlt::try_new_with_symbolic(k_symbolic.clone(), k_sparse, Side::Lower).ok()
+}
+
+/// The plain steps of a warm solve: `WARM_PLAIN_STEPS` block inverse iterations from
+/// `M Φ` (`mphi`), each made M-orthonormal; `M X` of the last, or `None` if the block lost
+/// its rank.
+fn plain_steps(
+    solve: &mut dyn FnMut(MatMut<'_, f64>),
+    model: &Model,
+    mut mphi: Mat<f64>,
+) -> Option<Mat<f64>> {
+    for _ in 0..WARM_PLAIN_STEPS {
+        mphi = orthonormal_inverse_iteration(solve, model, mphi)?;
+    }
+    Some(mphi)
+}
+
+/// The Rayleigh–Ritz steps of a warm solve (up to `WARM_MAX_STEPS` in all), from `M Φ`
+/// (`mphi`), until the residuals (into `residual`, one per wanted mode) of the first
+/// `strict` modes are below [`STRICT_RESIDUAL`] and of all below [`LOOSE_RESIDUAL`]: that
+/// step, or `None` if no step got there.
+fn ritz_steps(
+    solve: &mut dyn FnMut(MatMut<'_, f64>),
+    model: &Model,
+    mut mphi: Mat<f64>,
+    n_modes: usize,
+    strict: usize,
+    residual: &mut [f64],
+) -> Result<Option<RitzStep>, ModalError> {
+    let n = model.n_dof();
+    for _ in WARM_PLAIN_STEPS..WARM_MAX_STEPS {
+        let step = inverse_iteration_step(solve, model, mphi, n_modes)?;
+        relative_residuals(&step.k_phi, &step.m_phi, &step.lambda, n, residual);
+        if residual[..strict].iter().all(|&r| r <= STRICT_RESIDUAL)
+            && residual.iter().all(|&r| r <= LOOSE_RESIDUAL)
+        {
+            return Ok(Some(step));
+        }
+        mphi = step.m_phi;
+    }
+    Ok(None)
+}
+
+/// ρ_k = ‖Kφ − λMφ‖ / ‖Kφ‖ for the wanted modes (the first `residual.len()` columns of
+/// `kphi` and `mphi`, `n` rows).
+fn relative_residuals(
+    kphi: &Mat<f64>,
+    mphi: &Mat<f64>,
+    lambda: &[f64],
+    n: usize,
+    residual: &mut [f64],
+) {
+    for k in 0..residual.len() {
+        let (mut num, mut den) = (0.0, 0.0);
+        for i in 0..n {
+            num += (kphi[(i, k)] - lambda[k] * mphi[(i, k)]).powi(2);
+            den += kphi[(i, k)].powi(2);
+        }
+        residual[k] = (num / den).sqrt();
+    }
+}
+
 impl DenseEigen {
+    /// The Sturm check of a warm solve: with σ in the widest gap among the guard modes of
+    /// the Ritz values `lambda`, as many eigenvalues below σ as Ritz values (and the wanted
+    /// ones positive). False also when there is no guard mode or the count fails.
+    fn sturm_confirms(
+        &mut self,
+        model: &Model,
+        theta: &[f64],
+        lambda: &[f64],
+        n_modes: usize,
+    ) -> bool {
+        let q = lambda.len();
+        // Sturm count in the widest gap among the guard modes.
+        let Some(k) = (n_modes..q)
+            .max_by(|&a, &b| (lambda[a] / lambda[a - 1]).total_cmp(&(lambda[b] / lambda[b - 1])))
+        else {
+            return false;
+        };
+        let sigma = (lambda[k - 1] * lambda[k]).sqrt();
+        let Some(below) = self.count_below(model, theta, sigma) else {
+            return false;
+        };
+        below == k && check_positive(&lambda[..n_modes]).is_ok()
+    }
+
     /// The number of eigenvalues below σ: the negative pivots of `K − σM = LDLᵀ` (Sylvester's
     /// law of inertia), for the `K(θ)` whose union-pattern values are in `self.k_values`
     /// (the warm solve's; the dense fallback builds `K(θ)` from θ). `None` if the

@@ -146,7 +146,9 @@ impl Nelson {
     /// Eigenvalue derivatives `dlambda[l] = ∂λ/∂θ_l` and eigenvector derivatives
     /// `dphi[:, l] = ∂φ/∂θ_l` (n_dof × n_params) of the mass-normalized mode `(lambda, phi)`
     /// of `K(θ)`. `mode` (1-based) only labels errors. The columns of `dphi` must be
-    /// contiguous (an owned matrix's, or a column range of one).
+    /// contiguous (an owned matrix's, or a column range of one). Steps: the pinned
+    /// `K − λM`, the right-hand sides (and `∂λ`), the `LDLᵀ` solve (the LU when that fails
+    /// or its backward error is too large), and the mass normalization.
     #[allow(clippy::too_many_arguments)] // the quantities of the formula, each distinct
     pub fn derivatives(
         &mut self,
@@ -163,8 +165,34 @@ impl Nelson {
         // `kp`: the pinned component in the reordered numbering.
         let k = pinned_component(phi);
         let kp = order.inv[k];
+        self.pin_shifted(model, order, theta, lambda, kp);
+        self.right_hand_sides(model, order, phi, kp, dlambda);
+        let ldlt_ok = self.solve_ldlt(order);
+        // The solutions v_l, back in the model's numbering (in `dphi`).
+        if ldlt_ok {
+            for l in 0..p {
+                order.unpermute(
+                    col_slice(self.rhs.as_ref(), l),
+                    col_slice_mut(dphi.as_mut(), l),
+                );
+            }
+        } else {
+            self.lu_fallbacks += 1;
+            self.solve_lu(model, theta, lambda, k, dphi.as_mut())?;
+        }
+        mass_normalize(&self.m_phi, phi, dphi, p, mode)
+    }
 
-        // A = K(θ) − λM, row and column kp replaced by the identity.
+    /// `A = K(θ) − λM` into `self.values`, row and column `kp` (reordered numbering)
+    /// replaced by the identity.
+    fn pin_shifted(
+        &mut self,
+        model: &Model,
+        order: &Reordered,
+        theta: &[f64],
+        lambda: f64,
+        kp: usize,
+    ) {
         self.k_theta.copy_at(model, order, theta, &mut self.values);
         model.subtract_mass_reordered(order, lambda, &mut self.values);
         let lower = order.lower.as_ref();
@@ -181,15 +209,27 @@ impl Nelson {
                 self.values[lower.col_ptr()[j] + pos] = 0.0;
             }
         }
-        let a = SparseColMatRef::new(lower, &self.values);
+    }
 
+    /// `M φ` (into `self.m_phi`), the eigenvalue derivatives `dlambda[l] = φᵀ K_l φ`, and
+    /// the right-hand sides `f_l = −(K_l − ∂λ_l M) φ` with `f_l[kp] = 0`, in the reordered
+    /// numbering (into `self.f`).
+    fn right_hand_sides(
+        &mut self,
+        model: &Model,
+        order: &Reordered,
+        phi: &[f64],
+        kp: usize,
+        dlambda: &mut [f64],
+    ) {
+        let p = model.n_params();
         // Right-hand sides f_l = −(K_l − ∂λ_l M) φ with f_l[k] = 0, in the reordered
         // numbering: ∂λ_l M φ, less K_l φ on the rows K_l reaches. The sums run in the
         // order of a dense product (terms that are exactly zero left out), so the values
         // are those of one.
         self.m_phi.iter_mut().for_each(|v| *v = 0.0);
         spmv_add(model.mass(), phi, 1.0, &mut self.m_phi);
-        let [f, r, s] = &mut self.work;
+        let [f, _, s] = &mut self.work;
         f.iter_mut().for_each(|v| *v = 0.0);
         // `s`: M φ in the reordered numbering.
         order.permute(&self.m_phi, s);
@@ -217,8 +257,16 @@ impl Nelson {
             }
             col[kp] = 0.0;
         }
+    }
+
+    /// `A v_l = f_l` for every `l` by the unpivoted `LDLᵀ` of the pinned `A` in
+    /// `self.values` (solutions in `self.rhs`, reordered numbering): whether it factorized
+    /// and its backward error is within [`BACKWARD_TOL`].
+    fn solve_ldlt(&mut self, order: &Reordered) -> bool {
+        let a = SparseColMatRef::new(order.lower.as_ref(), &self.values);
+        let [f, r, s] = &mut self.work;
         self.rhs.copy_from(&self.f);
-        let ldlt_ok = match order.symbolic.factorize_numeric_ldlt(
+        match order.symbolic.factorize_numeric_ldlt(
             &mut self.l_values,
             a,
             Side::Lower,
@@ -242,37 +290,7 @@ impl Nelson {
                 ) <= BACKWARD_TOL
             }
             Err(_) => false,
-        };
-        // The solutions v_l, back in the model's numbering (in `dphi`).
-        if ldlt_ok {
-            for l in 0..p {
-                order.unpermute(
-                    col_slice(self.rhs.as_ref(), l),
-                    col_slice_mut(dphi.as_mut(), l),
-                );
-            }
-        } else {
-            self.lu_fallbacks += 1;
-            self.solve_lu(model, theta, lambda, k, dphi.as_mut())?;
         }
-
-        // ∂φ_l = v_l + c_l φ, c_l = −φᵀ M v_l.
-        for l in 0..p {
-            let d = col_slice_mut(dphi.as_mut(), l);
-            let c: f64 = -self
-                .m_phi
-                .iter()
-                .zip(d.iter())
-                .map(|(m, v)| m * v)
-                .sum::<f64>();
-            for (di, ph) in d.iter_mut().zip(phi) {
-                *di += c * ph;
-            }
-            if !d.iter().all(|v| v.is_finite()) {
-                return Err(ModalError::RepeatedEigenvalue { mode });
-            }
-        }
-        Ok(())
     }
 
     /// The fallback: `(K − λM) v_l = f_l` with component `k` pinned, by a sparse LU with
@@ -326,6 +344,30 @@ fn pinned_component(phi: &[f64]) -> usize {
     (0..phi.len())
         .max_by(|&a, &b| phi[a].abs().total_cmp(&phi[b].abs()))
         .unwrap_or(0)
+}
+
+/// `∂φ_l = v_l + c_l φ` with `c_l = −φᵀ M v_l` (`m_phi` is `M φ`), in place of the
+/// solutions `v_l` in the first `p` columns of `dphi`; a non-finite result means a repeated
+/// eigenvalue ([`ModalError::RepeatedEigenvalue`] of `mode`).
+fn mass_normalize(
+    m_phi: &[f64],
+    phi: &[f64],
+    mut dphi: MatMut<'_, f64>,
+    p: usize,
+    mode: usize,
+) -> Result<(), ModalError> {
+    // ∂φ_l = v_l + c_l φ, c_l = −φᵀ M v_l.
+    for l in 0..p {
+        let d = col_slice_mut(dphi.as_mut(), l);
+        let c: f64 = -m_phi.iter().zip(d.iter()).map(|(m, v)| m * v).sum::<f64>();
+        for (di, ph) in d.iter_mut().zip(phi) {
+            *di += c * ph;
+        }
+        if !d.iter().all(|v| v.is_finite()) {
+            return Err(ModalError::RepeatedEigenvalue { mode });
+        }
+    }
+    Ok(())
 }
 
 /// Normwise backward error `‖A v − f‖∞ / (‖|A||v|‖∞ + ‖f‖∞)` for `v = Σ_l v_l`,

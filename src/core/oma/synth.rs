@@ -126,25 +126,62 @@ pub fn light_damping_frame() -> Synthesized {
 /// `opts.damping` and `opts.max_frequency_hz` are not used.
 pub fn from_modes(modes: Vec<TrueMode>, channels: Vec<String>, opts: &SynthOptions) -> Synthesized {
     let fs = opts.rate_hz;
-    let m = modes.len();
     let dt = 1.0 / fs;
+    let samples = (opts.duration_s * fs).round() as usize;
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(opts.seed);
+    let unit = Normal::new(0.0, 1.0).expect("unit normal");
+    let quantity = |c: usize| quantity_at(&opts.quantities, c);
+    let lower = (0..channels.len()).any(|c| quantity(c) != Quantity::Acceleration);
+    let response = modal_response(&modes, dt, samples, lower, &mut rng, &unit);
+    let mut y = channel_signals(&modes, &response, channels.len(), lower, &opts.quantities);
+    if opts.noise_rel > 0.0 {
+        add_noise(&mut y, opts.noise_rel, samples, &mut rng, &unit);
+    }
+    Synthesized {
+        record: Record {
+            quantities: (0..channels.len()).map(quantity).collect(),
+            channels,
+            rate_hz: fs,
+            samples: y,
+        },
+        modes,
+    }
+}
+
+/// What channel `c` measures: its entry of `quantities`, an acceleration where there is none.
+fn quantity_at(quantities: &[Quantity], c: usize) -> Quantity {
+    quantities.get(c).copied().unwrap_or(Quantity::Acceleration)
+}
+
+/// The modal responses of a simulation, samples × modes.
+struct ModalResponse {
+    /// Modal accelerations.
+    qdd: Mat<f64>,
+    /// Modal velocities (0 × 0 when no channel reads them).
+    qd: Mat<f64>,
+    /// Modal displacements (0 × 0 when no channel reads them).
+    q: Mat<f64>,
+}
+
+/// Each modal equation stepped exactly ([`zoh_step`]) under its white force from `rng`,
+/// the burn-in of 10 time constants of the slowest-decaying mode dropped: `samples` modal
+/// accelerations, and with `lower` the modal velocities and displacements too.
+fn modal_response(
+    modes: &[TrueMode],
+    dt: f64,
+    samples: usize,
+    lower: bool,
+    rng: &mut rand_chacha::ChaCha8Rng,
+    unit: &Normal<f64>,
+) -> ModalResponse {
+    let m = modes.len();
     let slowest = modes
         .iter()
         .map(|md| md.damping * 2.0 * std::f64::consts::PI * md.frequency_hz)
         .fold(f64::INFINITY, f64::min);
     let burn = (10.0 / slowest / dt).ceil() as usize;
-    let samples = (opts.duration_s * fs).round() as usize;
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(opts.seed);
-    let unit = Normal::new(0.0, 1.0).expect("unit normal");
     // Modal accelerations, samples × modes.
     let mut qdd = Mat::<f64>::zeros(samples, m);
-    let quantity = |c: usize| {
-        opts.quantities
-            .get(c)
-            .copied()
-            .unwrap_or(Quantity::Acceleration)
-    };
-    let lower = (0..channels.len()).any(|c| quantity(c) != Quantity::Acceleration);
     let (mut qd, mut q) = if lower {
         (Mat::<f64>::zeros(samples, m), Mat::<f64>::zeros(samples, m))
     } else {
@@ -157,7 +194,7 @@ pub fn from_modes(modes: Vec<TrueMode>, channels: Vec<String>, opts: &SynthOptio
     let mut state = vec![(0.0_f64, 0.0_f64); m];
     for k in 0..burn + samples {
         for (j, st) in state.iter_mut().enumerate() {
-            let p = unit.sample(&mut rng);
+            let p = unit.sample(rng);
             let [a00, a01, a10, a11, b0, b1] = steps[j];
             let (w, zeta) = (
                 2.0 * std::f64::consts::PI * modes[j].frequency_hz,
@@ -176,35 +213,50 @@ pub fn from_modes(modes: Vec<TrueMode>, channels: Vec<String>, opts: &SynthOptio
             );
         }
     }
-    let phi = Mat::from_fn(m, channels.len(), |j, c| modes[j].shape[c]);
-    let mut y = &qdd * &phi;
+    ModalResponse { qdd, qd, q }
+}
+
+/// The channels' signals, samples × channels: the modal accelerations through the shapes,
+/// and with `lower`, for a channel that measures a velocity or a displacement, the modal
+/// velocities or displacements through them instead.
+fn channel_signals(
+    modes: &[TrueMode],
+    response: &ModalResponse,
+    n_channels: usize,
+    lower: bool,
+    quantities: &[Quantity],
+) -> Mat<f64> {
+    let m = modes.len();
+    let phi = Mat::from_fn(m, n_channels, |j, c| modes[j].shape[c]);
+    let mut y = &response.qdd * &phi;
     if lower {
-        let (yd, yv) = (&q * &phi, &qd * &phi);
-        for c in 0..channels.len() {
-            match quantity(c) {
+        let (yd, yv) = (&response.q * &phi, &response.qd * &phi);
+        for c in 0..n_channels {
+            match quantity_at(quantities, c) {
                 Quantity::Acceleration => {}
                 Quantity::Velocity => y.col_mut(c).copy_from(yv.col(c)),
                 Quantity::Displacement => y.col_mut(c).copy_from(yd.col(c)),
             }
         }
     }
-    if opts.noise_rel > 0.0 {
-        for c in 0..y.ncols() {
-            let rms = (y.col(c).iter().map(|v| v * v).sum::<f64>() / samples as f64).sqrt();
-            let sd = opts.noise_rel * rms;
-            for k in 0..samples {
-                y[(k, c)] += sd * unit.sample(&mut rng);
-            }
+    y
+}
+
+/// White sensor noise of `noise_rel` times each channel's RMS (over its `samples` rows)
+/// added to `y`, channel by channel, from `rng`.
+fn add_noise(
+    y: &mut Mat<f64>,
+    noise_rel: f64,
+    samples: usize,
+    rng: &mut rand_chacha::ChaCha8Rng,
+    unit: &Normal<f64>,
+) {
+    for c in 0..y.ncols() {
+        let rms = (y.col(c).iter().map(|v| v * v).sum::<f64>() / samples as f64).sqrt();
+        let sd = noise_rel * rms;
+        for k in 0..samples {
+            y[(k, c)] += sd * unit.sample(rng);
         }
-    }
-    Synthesized {
-        record: Record {
-            quantities: (0..channels.len()).map(quantity).collect(),
-            channels,
-            rate_hz: fs,
-            samples: y,
-        },
-        modes,
     }
 }
 

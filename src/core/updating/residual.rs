@@ -9,12 +9,12 @@
 
 use faer::Mat;
 
-use super::data::MeasuredData;
+use super::data::{MeasuredData, TargetMode, TargetShape};
 use crate::core::modal::eigen::{STRICT_RESIDUAL, WarmBlock};
 use crate::core::modal::{
     EigenPairs, EigenSolver, ModalError, Nelson, SPARSE_FROM_DOF, SharedStiffness, mac, solver_for,
 };
-use crate::core::model::Model;
+use crate::core::model::{Channel, Model};
 
 /// The residual at one θ.
 #[derive(Debug, Clone)]
@@ -88,6 +88,9 @@ pub struct Evaluator {
 
 /// ∂λ_k (per parameter) and ∂φ_k at every channel (channels × parameters).
 type Sensitivity = (Vec<f64>, Mat<f64>);
+
+/// One share's sensitivities: each model mode (0-based) with its [`Sensitivity`].
+type ShareResult = Result<Vec<(usize, Sensitivity)>, ModalError>;
 
 /// Number of model modes searched for pairing partners: twice the measured count, and at
 /// least ten more (the paper's Fig. 13 pairs measured mode 9 with model mode 13).
@@ -222,9 +225,18 @@ impl Evaluator {
         data: &MeasuredData,
         ev: &Evaluation,
     ) -> Result<Mat<f64>, ModalError> {
-        let p = model.n_params();
-        let channels = model.channels();
-        let mut jac = Mat::zeros(data.n_data(), p);
+        let cache = self.sensitivities(model, ev)?;
+        Ok(assemble_jacobian(model, data, ev, cache))
+    }
+
+    /// ∂λ and ∂φ at every channel of every paired model mode of `ev` (indexed by model
+    /// mode), the ones remembered from the last Jacobian at the same θ reused and the others
+    /// differentiated; remembered for the next Jacobian.
+    fn sensitivities(
+        &mut self,
+        model: &Model,
+        ev: &Evaluation,
+    ) -> Result<&[Option<Sensitivity>], ModalError> {
         // Sensitivities per distinct paired model mode: ∂λ (p) and ∂φ at every channel.
         let mut cache: Vec<Option<Sensitivity>> = match self.last_sensitivities.take() {
             Some((t, c)) if t == ev.theta && c.len() == ev.eig.lambda.len() => c,
@@ -239,11 +251,32 @@ impl Evaluator {
             .collect();
         todo.sort_unstable();
         todo.dedup();
+        let done = self.differentiate(model, ev, &todo);
+        for share in done {
+            for (k, sens) in share? {
+                cache[k] = Some(sens);
+            }
+        }
+        Ok(self
+            .last_sensitivities
+            .insert((ev.theta.clone(), cache))
+            .1
+            .as_slice())
+    }
+
+    /// Nelson's method (paper (18)–(19)) for the model modes `todo` of `ev`, dealt round the
+    /// workspaces: this thread takes the first share, the helper threads the others (all on
+    /// this thread without helpers or with one share). One result per share, in share order.
+    fn differentiate(
+        &mut self,
+        model: &Model,
+        ev: &Evaluation,
+        todo: &[usize],
+    ) -> Vec<ShareResult> {
         let shares = self.nelson.len().min(todo.len()).max(1);
         let share =
             |t: usize| -> Vec<usize> { todo.iter().copied().skip(t).step_by(shares).collect() };
-        let done: Vec<Result<Vec<(usize, Sensitivity)>, ModalError>> = match crate::core::helpers()
-        {
+        match crate::core::helpers() {
             Some(pool) if shares > 1 => {
                 // This thread takes the first share, the helpers the others.
                 let (first, rest) = self.nelson[..shares]
@@ -262,58 +295,71 @@ impl Evaluator {
                     .map(|r| r.expect("every share ran"))
                     .collect()
             }
-            _ => vec![self.nelson[0].modes(model, ev, &todo)],
-        };
-        for share in done {
-            for (k, sens) in share? {
-                cache[k] = Some(sens);
-            }
+            _ => vec![self.nelson[0].modes(model, ev, todo)],
         }
-        let cache = &self.last_sensitivities.insert((ev.theta.clone(), cache)).1;
-        let mut row = 0;
-        let mut dp = Vec::new();
-        for (m, mode) in data.modes.iter().enumerate() {
-            let k = ev.pairing[m];
-            let (dl, dch) = cache[k]
-                .as_ref()
-                .expect("every paired mode was differentiated");
-            for l in 0..p {
-                jac[(row, l)] = -dl[l] / mode.sigma_lambda;
-            }
-            row += 1;
-            if let Some(s) = &mode.shape {
-                read_channels(&ev.eig, k, &s.channels, channels, &mut dp);
-                let c = ev.scale[m];
-                let norm2: f64 = dp.iter().map(|v| v * v).sum();
-                // ∂c = (ψ̂ − 2c Dφ)ᵀ D∂φ / ‖Dφ‖²
-                let weight: Vec<f64> = s
-                    .values
-                    .iter()
-                    .zip(&dp)
-                    .map(|(psi, d)| (psi - 2.0 * c * d) / norm2)
-                    .collect();
-                for l in 0..p {
-                    let dcol = dch.col(l);
-                    let dc: f64 = s
-                        .channels
-                        .iter()
-                        .zip(&weight)
-                        .map(|(&ch, w)| w * dcol[ch])
-                        .sum();
-                    let jcol = jac
-                        .col_mut(l)
-                        .try_as_col_major_mut()
-                        .expect("owned matrix columns are contiguous")
-                        .as_slice_mut();
-                    for (i, ((&ch, &d), sd)) in s.channels.iter().zip(&dp).zip(&s.sigma).enumerate()
-                    {
-                        jcol[row + i] = -(c * dcol[ch] + dc * d) / sd;
-                    }
-                }
-                row += s.channels.len();
-            }
+    }
+}
+
+/// `J = −W^{1/2} S` from the sensitivities of the paired model modes (`cache`, indexed by
+/// model mode): per measured mode, its eigenvalue row and then its shape rows.
+fn assemble_jacobian(
+    model: &Model,
+    data: &MeasuredData,
+    ev: &Evaluation,
+    cache: &[Option<Sensitivity>],
+) -> Mat<f64> {
+    let p = model.n_params();
+    let channels = model.channels();
+    let mut jac = Mat::zeros(data.n_data(), p);
+    let mut row = 0;
+    let mut dp = Vec::new();
+    for (m, mode) in data.modes.iter().enumerate() {
+        let k = ev.pairing[m];
+        let (dl, dch) = cache[k]
+            .as_ref()
+            .expect("every paired mode was differentiated");
+        for l in 0..p {
+            jac[(row, l)] = -dl[l] / mode.sigma_lambda;
         }
-        Ok(jac)
+        row += 1;
+        if let Some(s) = &mode.shape {
+            read_channels(&ev.eig, k, &s.channels, channels, &mut dp);
+            shape_rows(&mut jac, row, s, ev.scale[m], dch, &dp);
+            row += s.channels.len();
+        }
+    }
+    jac
+}
+
+/// The shape rows of `J` from `row` on for a measured shape `s` with scale factor `c` (7),
+/// model readings `dp = Dφ` at its channels and `dch = ∂φ` at every channel: the derivative
+/// of `−(ψ̂ − c Dφ)/σ` including `∂c`.
+fn shape_rows(jac: &mut Mat<f64>, row: usize, s: &TargetShape, c: f64, dch: &Mat<f64>, dp: &[f64]) {
+    let p = jac.ncols();
+    let norm2: f64 = dp.iter().map(|v| v * v).sum();
+    // ∂c = (ψ̂ − 2c Dφ)ᵀ D∂φ / ‖Dφ‖²
+    let weight: Vec<f64> = s
+        .values
+        .iter()
+        .zip(dp)
+        .map(|(psi, d)| (psi - 2.0 * c * d) / norm2)
+        .collect();
+    for l in 0..p {
+        let dcol = dch.col(l);
+        let dc: f64 = s
+            .channels
+            .iter()
+            .zip(&weight)
+            .map(|(&ch, w)| w * dcol[ch])
+            .sum();
+        let jcol = jac
+            .col_mut(l)
+            .try_as_col_major_mut()
+            .expect("owned matrix columns are contiguous")
+            .as_slice_mut();
+        for (i, ((&ch, &d), sd)) in s.channels.iter().zip(dp).zip(&s.sigma).enumerate() {
+            jcol[row + i] = -(c * dcol[ch] + dc * d) / sd;
+        }
     }
 }
 
@@ -380,66 +426,21 @@ fn residual_at(
     n_cand: usize,
     rule: Pairing,
 ) -> Evaluation {
-    let channels = model.channels();
-    // Every candidate's reading at every model channel, once (rows: candidates).
-    let readings: Vec<Vec<f64>> = (0..n_cand)
-        .map(|k| {
-            channels
-                .iter()
-                .map(|ch| ch.dofs.iter().map(|&(i, w)| w * eig.phi[(i, k)]).sum())
-                .collect()
-        })
-        .collect();
+    let readings = candidate_readings(model.channels(), &eig, n_cand);
     let mut pairing = Vec::with_capacity(data.modes.len());
     let mut macs = Vec::with_capacity(data.modes.len());
     let mut scales = Vec::with_capacity(data.modes.len());
     let mut r = Vec::with_capacity(data.n_data());
     let mut dphi_k = Vec::new();
-    let gather = |k: usize, idx: &[usize], out: &mut Vec<f64>| {
-        out.clear();
-        out.extend(idx.iter().map(|&c| readings[k][c]));
-    };
     for mode in &data.modes {
-        let (k, mac_k) = match &mode.shape {
-            Some(s) => {
-                // The best candidate by the rule: the highest MAC, or the least misfit.
-                let mut best = (0, f64::INFINITY, f64::NAN);
-                for k in 0..n_cand {
-                    gather(k, &s.channels, &mut dphi_k);
-                    let v = mac(&s.values, &dphi_k);
-                    let score = match rule {
-                        Pairing::Mac => -v,
-                        Pairing::Misfit => mode_misfit(mode, s, eig.lambda[k], &dphi_k),
-                    };
-                    if score < best.1 {
-                        best = (k, score, v);
-                    }
-                }
-                (best.0, best.2)
-            }
-            // Frequency only: the nearest model eigenvalue.
-            None => {
-                let k = (0..n_cand)
-                    .min_by(|&a, &b| {
-                        (eig.lambda[a] - mode.lambda)
-                            .abs()
-                            .total_cmp(&(eig.lambda[b] - mode.lambda).abs())
-                    })
-                    .unwrap_or(0);
-                (k, f64::NAN)
-            }
-        };
+        let (k, mac_k) = pair_mode(mode, rule, &eig, &readings, n_cand, &mut dphi_k);
         pairing.push(k);
         macs.push(mac_k);
         r.push((mode.lambda - eig.lambda[k]) / mode.sigma_lambda);
         match &mode.shape {
             Some(s) => {
-                gather(k, &s.channels, &mut dphi_k);
-                let c = scale_factor(&s.values, &dphi_k);
-                scales.push(c);
-                for ((psi, dp), sd) in s.values.iter().zip(&dphi_k).zip(&s.sigma) {
-                    r.push((psi - c * dp) / sd);
-                }
+                gather(&readings, k, &s.channels, &mut dphi_k);
+                scales.push(push_shape_residual(s, &dphi_k, &mut r));
             }
             None => scales.push(f64::NAN),
         }
@@ -456,15 +457,82 @@ fn residual_at(
     }
 }
 
+/// Every candidate's reading `D φ_k` at every model channel, once (rows: the first `n_cand`
+/// candidates).
+fn candidate_readings(channels: &[Channel], eig: &EigenPairs, n_cand: usize) -> Vec<Vec<f64>> {
+    (0..n_cand)
+        .map(|k| {
+            channels
+                .iter()
+                .map(|ch| ch.dofs.iter().map(|&(i, w)| w * eig.phi[(i, k)]).sum())
+                .collect()
+        })
+        .collect()
+}
+
+/// Candidate `k`'s readings at the channels `idx` into `out`.
+fn gather(readings: &[Vec<f64>], k: usize, idx: &[usize], out: &mut Vec<f64>) {
+    out.clear();
+    out.extend(idx.iter().map(|&c| readings[k][c]));
+}
+
+/// Pairing (29) by `rule` of measured mode `mode` among the first `n_cand` candidates: the
+/// model mode (0-based) and the MAC of the shape with it (NaN without a shape). `dphi_k` is
+/// scratch for the candidates' readings.
+fn pair_mode(
+    mode: &TargetMode,
+    rule: Pairing,
+    eig: &EigenPairs,
+    readings: &[Vec<f64>],
+    n_cand: usize,
+    dphi_k: &mut Vec<f64>,
+) -> (usize, f64) {
+    match &mode.shape {
+        Some(s) => {
+            // The best candidate by the rule: the highest MAC, or the least misfit.
+            let mut best = (0, f64::INFINITY, f64::NAN);
+            for k in 0..n_cand {
+                gather(readings, k, &s.channels, dphi_k);
+                let v = mac(&s.values, dphi_k);
+                let score = match rule {
+                    Pairing::Mac => -v,
+                    Pairing::Misfit => mode_misfit(mode, s, eig.lambda[k], dphi_k),
+                };
+                if score < best.1 {
+                    best = (k, score, v);
+                }
+            }
+            (best.0, best.2)
+        }
+        // Frequency only: the nearest model eigenvalue.
+        None => {
+            let k = (0..n_cand)
+                .min_by(|&a, &b| {
+                    (eig.lambda[a] - mode.lambda)
+                        .abs()
+                        .total_cmp(&(eig.lambda[b] - mode.lambda).abs())
+                })
+                .unwrap_or(0);
+            (k, f64::NAN)
+        }
+    }
+}
+
+/// The shape part of the residual (6) for measured shape `s` and the paired mode's readings
+/// `dphi` at its channels, pushed onto `r`: `(ψ̂ − c Dφ)/σ` with the scale factor `c` (7),
+/// which it returns.
+fn push_shape_residual(s: &TargetShape, dphi: &[f64], r: &mut Vec<f64>) -> f64 {
+    let c = scale_factor(&s.values, dphi);
+    for ((psi, dp), sd) in s.values.iter().zip(dphi).zip(&s.sigma) {
+        r.push((psi - c * dp) / sd);
+    }
+    c
+}
+
 /// The contribution to ε (5) of measured mode `mode` paired with a model mode of
 /// eigenvalue `lambda` and channel readings `dphi`: its eigenvalue term and its shape term
 /// with the optimal scale factor (7).
-fn mode_misfit(
-    mode: &super::data::TargetMode,
-    s: &super::data::TargetShape,
-    lambda: f64,
-    dphi: &[f64],
-) -> f64 {
+fn mode_misfit(mode: &TargetMode, s: &TargetShape, lambda: f64, dphi: &[f64]) -> f64 {
     let c = scale_factor(&s.values, dphi);
     let shape: f64 = (s.values.iter().zip(dphi).zip(&s.sigma))
         .map(|((psi, d), sd)| ((psi - c * d) / sd).powi(2))
@@ -477,7 +545,7 @@ fn read_channels(
     eig: &EigenPairs,
     k: usize,
     idx: &[usize],
-    channels: &[crate::core::model::Channel],
+    channels: &[Channel],
     out: &mut Vec<f64>,
 ) {
     out.clear();

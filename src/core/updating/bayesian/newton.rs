@@ -78,6 +78,107 @@ impl NewtonStop {
         decrement_tol: 1e-9,
         stall_probe: false,
     };
+
+    /// Whether the undamped Newton step at `y` meets this rule: every component below
+    /// `step_tol` relative (to `max(|y_i|, 1e-12·scale_y)`), or the predicted decrease
+    /// −gᵀΔ/2 below `decrement_tol` of `F` (`value`). Never where `hessian` is not positive
+    /// definite.
+    fn converged_at(
+        &self,
+        hessian: &Mat<f64>,
+        gradient: &[f64],
+        y: &[f64],
+        scale_y: f64,
+        value: f64,
+    ) -> bool {
+        let ny = y.len();
+        if let Ok(llt) = hessian.llt(Side::Lower) {
+            let g = Col::from_fn(ny, |i| -gradient[i]);
+            let step = llt.solve(g.as_mat());
+            let decrement: f64 = 0.5 * (0..ny).map(|i| g[i] * step[(i, 0)]).sum::<f64>();
+            if (0..ny)
+                .all(|i| step[(i, 0)].abs() <= self.step_tol * y[i].abs().max(1e-12 * scale_y))
+                || decrement <= self.decrement_tol * value.abs()
+            {
+                return true;
+            }
+        }
+        false
+    }
+}
+
+/// A σ_c continuation under way ([`BayesProblem::solve_newton_continued`]): its target
+/// σ_c and budgets, the stages so far and the iterations they used.
+struct Continuation {
+    target: f64,
+    /// Iterations allowed to all stages together.
+    max_iterations: usize,
+    /// Iterations allowed to a warm-started stage.
+    budget: usize,
+    /// Iterations allowed to a cold start.
+    cold_budget: usize,
+    stages: Vec<ContinuationStage>,
+    used: usize,
+}
+
+impl Continuation {
+    /// Counts a stage at `sigma_c` that ended in `r`.
+    fn record(&mut self, sigma_c: f64, r: &BayesResult) {
+        self.used += r.iterations;
+        self.stages.push(ContinuationStage {
+            sigma_c,
+            iterations: r.iterations,
+            converged: r.converged,
+        })
+    }
+
+    /// The continuation's outcome: `r` with the iterations and stages of all stages, and
+    /// `prob` weighted at the target σ_c again.
+    fn finish(self, prob: &mut BayesProblem, mut r: BayesResult) -> BayesResult {
+        prob.inv_s2 = 1.0 / (self.target * self.target);
+        r.iterations = self.used;
+        r.stages = self.stages;
+        r
+    }
+}
+
+/// Where the Newton iteration stands: `y = (λ, θ)`, `F` there, the trust radius `Δ`, and
+/// the least relative multiplier `μ` of an accepted step so far (see [`STALL_DAMPING`]).
+struct Iterate {
+    y: Vec<f64>,
+    cur: Reduced,
+    delta: f64,
+    least_mu: f64,
+}
+
+/// The quadratic model of `F` at `y` in relative coordinates `y_i = d_i (1 + z_i)`.
+struct ScaledModel {
+    /// The scaling `d`.
+    d: Vec<f64>,
+    /// `D H D`.
+    h: Mat<f64>,
+    /// `D g`.
+    g: Vec<f64>,
+    /// The largest diagonal entry of `D H D` in magnitude.
+    h_diag: f64,
+}
+
+impl ScaledModel {
+    /// The model for the (free) `hessian` and `gradient` at `y`, where `scale_y` is the
+    /// largest `|y_i|`.
+    fn at(y: &[f64], hessian: &Mat<f64>, gradient: &[f64], scale_y: f64) -> Self {
+        let ny = y.len();
+        let d: Vec<f64> = y.iter().map(|v| v.abs().max(1e-12 * scale_y)).collect();
+        let h_scaled = Mat::from_fn(ny, ny, |i, j| d[i] * hessian[(i, j)] * d[j]);
+        let g_scaled: Vec<f64> = (0..ny).map(|i| d[i] * gradient[i]).collect();
+        let h_diag = (0..ny).map(|i| h_scaled[(i, i)].abs()).fold(0.0, f64::max);
+        Self {
+            d,
+            h: h_scaled,
+            g: g_scaled,
+            h_diag,
+        }
+    }
 }
 
 impl BayesProblem {
@@ -111,38 +212,40 @@ impl BayesProblem {
         max_iterations: usize,
     ) -> Result<BayesResult, BayesError> {
         let target = self.sigma_c();
-        let budget = CONTINUATION_STAGE_ITERATIONS.min(max_iterations);
-        let cold_budget = COLD_START_ITERATIONS.min(max_iterations);
-        let mut stages = Vec::new();
-        let mut used = 0;
-        let finish =
-            |prob: &mut Self, mut r: BayesResult, stages: Vec<ContinuationStage>, used: usize| {
-                prob.inv_s2 = 1.0 / (target * target);
-                r.iterations = used;
-                r.stages = stages;
-                r
-            };
-        let record = |stages: &mut Vec<ContinuationStage>, s: f64, r: &BayesResult| {
-            stages.push(ContinuationStage {
-                sigma_c: s,
-                iterations: r.iterations,
-                converged: r.converged,
-            })
+        let mut run = Continuation {
+            target,
+            max_iterations,
+            budget: CONTINUATION_STAGE_ITERATIONS.min(max_iterations),
+            cold_budget: COLD_START_ITERATIONS.min(max_iterations),
+            stages: Vec::new(),
+            used: 0,
         };
         let lambda_hat = self.lambda_hat();
-        let direct = self.newton(&lambda_hat, theta0, cold_budget, NewtonStop::COLD)?;
-        used += direct.iterations;
-        record(&mut stages, target, &direct);
-        if direct.converged || cold_budget == max_iterations {
+        let direct = self.newton(&lambda_hat, theta0, run.cold_budget, NewtonStop::COLD)?;
+        run.record(target, &direct);
+        if direct.converged || run.cold_budget == max_iterations {
             // Converged, or the caller allowed no more than one stage.
-            return Ok(finish(self, direct, stages, used));
+            return Ok(run.finish(self, direct));
         }
-        // Climb until a cold start converges.
-        let mut sigma = target;
-        let mut good: Option<BayesResult> = None;
+        let Some((sigma, good)) = self.climb(&mut run, &lambda_hat, theta0)? else {
+            return self.carry_on(run, &direct, None);
+        };
+        self.descend(run, &direct, sigma, good)
+    }
+
+    /// Climbs until a cold start converges: cold starts from `(λ̂, θ0)` at `10σ_c, 100σ_c, …`
+    /// (at most [`CONTINUATION_CLIMBS`], within the budget), each a stage to the looser
+    /// rule but stall-probed. The σ_c and result of the first that converges.
+    fn climb(
+        &mut self,
+        run: &mut Continuation,
+        lambda_hat: &[f64],
+        theta0: &[f64],
+    ) -> Result<Option<(f64, BayesResult)>, BayesError> {
+        let mut sigma = run.target;
         for _ in 0..CONTINUATION_CLIMBS {
             sigma *= 10.0;
-            if used >= max_iterations {
+            if run.used >= run.max_iterations {
                 break;
             }
             self.inv_s2 = 1.0 / (sigma * sigma);
@@ -152,66 +255,38 @@ impl BayesProblem {
                 ..NewtonStop::STAGE
             };
             let r = self.newton(
-                &lambda_hat,
+                lambda_hat,
                 theta0,
-                cold_budget.min(max_iterations - used),
+                run.cold_budget.min(run.max_iterations - run.used),
                 stop,
             )?;
-            used += r.iterations;
-            record(&mut stages, sigma, &r);
+            run.record(sigma, &r);
             if r.converged {
-                good = Some(r);
-                break;
+                return Ok(Some((sigma, r)));
             }
         }
-        // If no cold start converged up to 10^CONTINUATION_CLIMBS σ_c, or a warm stage
-        // fails on the way down, the trouble is not the narrow valley of a small σ_c
-        // (typically θ runs against the boundary θ > 0): carry on at the target, with the
-        // budget left, from where the first cold start stopped or from where the failed
-        // stage at the target stopped, whichever is lower in J_p. (Four-bay frame, seed 3,
-        // σ_c = 1: the cold start stalls at J_p = 5.1e4, the stage at the target reaches
-        // 377.2 and stops on a Hessian that is not positive definite; carrying on from the
-        // cold start ended at 2.6e4.)
-        let carry_on = |prob: &mut Self,
-                        mut stages: Vec<ContinuationStage>,
-                        mut used: usize,
-                        failed: Option<&BayesResult>| {
-            prob.inv_s2 = 1.0 / (target * target);
-            let budget = max_iterations.saturating_sub(used);
-            let from_direct = |prob: &Self| {
-                prob.newton(
-                    &direct.state.lambda,
-                    &direct.state.theta,
-                    budget,
-                    NewtonStop::FINAL,
-                )
-            };
-            let more = match failed {
-                // A point that low can sit on an eigenvalue of the model to rounding (σ_c
-                // small: the model equation nearly holds), where a large model's φ substep
-                // cannot be solved (four-bay frame, seed 1, σ_c = 1): then, as before, from
-                // the cold start.
-                Some(r) if r.terms.total < direct.terms.total => prob
-                    .newton(&r.state.lambda, &r.state.theta, budget, NewtonStop::FINAL)
-                    .or_else(|_| from_direct(prob))?,
-                _ => from_direct(prob)?,
-            };
-            used += more.iterations;
-            record(&mut stages, target, &more);
-            Ok(finish(prob, more, stages, used))
-        };
-        let Some(mut good) = good else {
-            return carry_on(self, stages, used, None);
-        };
-        // Descend with warm starts; only the last stage, at the target, converges fully.
+        Ok(None)
+    }
+
+    /// Descends from the converged cold start `good` at `sigma` with warm starts, each
+    /// σ_c [`CONTINUATION_RATIO`] below the last; only the last stage, at the target,
+    /// converges fully. A stage that fails hands over to [`Self::carry_on`].
+    fn descend(
+        &mut self,
+        mut run: Continuation,
+        direct: &BayesResult,
+        mut sigma: f64,
+        mut good: BayesResult,
+    ) -> Result<BayesResult, BayesError> {
+        let target = run.target;
         while sigma > target {
-            if used >= max_iterations {
+            if run.used >= run.max_iterations {
                 // Budget spent above the target: report the last stage at the target σ_c,
                 // not converged.
                 self.inv_s2 = 1.0 / (target * target);
                 let mut r = self.solve_newton_from(&good.state.lambda, &good.state.theta, 0)?;
                 r.converged = false;
-                return Ok(finish(self, r, stages, used));
+                return Ok(run.finish(self, r));
             }
             let next = (sigma / CONTINUATION_RATIO).max(target);
             self.inv_s2 = 1.0 / (next * next);
@@ -225,21 +300,59 @@ impl BayesProblem {
             let Ok(r) = self.newton(
                 &good.state.lambda,
                 &good.state.theta,
-                budget.min(max_iterations - used),
+                run.budget.min(run.max_iterations - run.used),
                 stop,
             ) else {
-                return carry_on(self, stages, used, None);
+                return self.carry_on(run, direct, None);
             };
-            used += r.iterations;
-            record(&mut stages, next, &r);
+            run.record(next, &r);
             if !r.converged {
                 // A stage above the target is at another σ_c: its J_p is not comparable.
-                return carry_on(self, stages, used, (next == target).then_some(&r));
+                return self.carry_on(run, direct, (next == target).then_some(&r));
             }
             sigma = next;
             good = r;
         }
-        Ok(finish(self, good, stages, used))
+        Ok(run.finish(self, good))
+    }
+
+    /// If no cold start converged up to 10^CONTINUATION_CLIMBS σ_c, or a warm stage
+    /// fails on the way down, the trouble is not the narrow valley of a small σ_c
+    /// (typically θ runs against the boundary θ > 0): carry on at the target, with the
+    /// budget left, from where the first cold start (`direct`) stopped or from where the
+    /// `failed` stage at the target stopped, whichever is lower in J_p. (Four-bay frame,
+    /// seed 3, σ_c = 1: the cold start stalls at J_p = 5.1e4, the stage at the target
+    /// reaches 377.2 and stops on a Hessian that is not positive definite; carrying on from
+    /// the cold start ended at 2.6e4.)
+    fn carry_on(
+        &mut self,
+        mut run: Continuation,
+        direct: &BayesResult,
+        failed: Option<&BayesResult>,
+    ) -> Result<BayesResult, BayesError> {
+        let target = run.target;
+        self.inv_s2 = 1.0 / (target * target);
+        let budget = run.max_iterations.saturating_sub(run.used);
+        let from_direct = |prob: &Self| {
+            prob.newton(
+                &direct.state.lambda,
+                &direct.state.theta,
+                budget,
+                NewtonStop::FINAL,
+            )
+        };
+        let more = match failed {
+            // A point that low can sit on an eigenvalue of the model to rounding (σ_c
+            // small: the model equation nearly holds), where a large model's φ substep
+            // cannot be solved (four-bay frame, seed 1, σ_c = 1): then, as before, from
+            // the cold start.
+            Some(r) if r.terms.total < direct.terms.total => self
+                .newton(&r.state.lambda, &r.state.theta, budget, NewtonStop::FINAL)
+                .or_else(|_| from_direct(self))?,
+            _ => from_direct(self)?,
+        };
+        run.record(target, &more);
+        Ok(run.finish(self, more))
     }
 
     /// [`Self::solve_newton`] from any `(λ0, θ0)`, e.g. the MAP at a neighbouring σ_c.
@@ -264,91 +377,35 @@ impl BayesProblem {
         let nm = self.modes.len();
         let mut y: Vec<f64> = lambda0.to_vec();
         y.extend_from_slice(&self.bounds.clamp(theta0));
-        let mut cur = self.reduced(&y[..nm], &y[nm..])?;
-        let mut delta = TRUST_INITIAL_RADIUS;
-        let mut least_mu = f64::INFINITY;
+        let cur = self.reduced(&y[..nm], &y[nm..])?;
+        let mut it = Iterate {
+            y,
+            cur,
+            delta: TRUST_INITIAL_RADIUS,
+            least_mu: f64::INFINITY,
+        };
         let mut iterations = 0;
         let mut converged = false;
         let mut stuck = false;
         while iterations < max_iterations {
-            if stop.stall_probe && iterations >= STALL_PROBE_ITERATIONS && least_mu >= STALL_DAMPING
+            if stop.stall_probe
+                && iterations >= STALL_PROBE_ITERATIONS
+                && it.least_mu >= STALL_DAMPING
             {
                 break;
             }
-            let ny = y.len();
-            let scale_y = y.iter().fold(0.0_f64, |a, v| a.max(v.abs()));
+            let scale_y = it.y.iter().fold(0.0_f64, |a, v| a.max(v.abs()));
             // A θ on a bound with descent pointing out of the box is held there: the steps
             // and the stopping test are those of the free variables (the bounded
             // first-order conditions).
-            let (hessian, gradient) = self.free_part(&cur, &y[nm..]);
-            // Undamped Newton step for the stopping test: converged when every component is
-            // below `step_tol` relative, or the predicted decrease −gᵀΔ/2 is below
-            // `decrement_tol` of F (F cannot be lowered measurably any more).
-            if let Ok(llt) = hessian.llt(Side::Lower) {
-                let g = Col::from_fn(ny, |i| -gradient[i]);
-                let step = llt.solve(g.as_mat());
-                let decrement: f64 = 0.5 * (0..ny).map(|i| g[i] * step[(i, 0)]).sum::<f64>();
-                if (0..ny)
-                    .all(|i| step[(i, 0)].abs() <= stop.step_tol * y[i].abs().max(1e-12 * scale_y))
-                    || decrement <= stop.decrement_tol * cur.value.abs()
-                {
-                    converged = true;
-                    break;
-                }
+            let (hessian, gradient) = self.free_part(&it.cur, &it.y[nm..]);
+            if stop.converged_at(&hessian, &gradient, &it.y, scale_y, it.cur.value) {
+                converged = true;
+                break;
             }
-            // Trust-region step in relative coordinates `y_i = d_i (1 + z_i)`: the region
-            // `‖z‖ ≤ Δ < 1` keeps every λ and θ positive, and scales the modes' eigenvalues
-            // (~1e5) and the parameters (~1) alike.
-            let d: Vec<f64> = y.iter().map(|v| v.abs().max(1e-12 * scale_y)).collect();
-            let h_scaled = Mat::from_fn(ny, ny, |i, j| d[i] * hessian[(i, j)] * d[j]);
-            let g_scaled: Vec<f64> = (0..ny).map(|i| d[i] * gradient[i]).collect();
-            let h_diag = (0..ny).map(|i| h_scaled[(i, i)].abs()).fold(0.0, f64::max);
-            let mut accepted = false;
-            while delta >= TRUST_MIN_RADIUS {
-                let Some(step) = trust::trust_region_step(&h_scaled, &g_scaled, delta) else {
-                    break;
-                };
-                let mut trial_y: Vec<f64> = (0..ny).map(|i| y[i] + d[i] * step.z[i]).collect();
-                let length = step.z.iter().map(|v| v * v).sum::<f64>().sqrt();
-                // Cut at the bounds; a cut step predicts its own decrease.
-                let predicted = self
-                    .cut_at_bounds(&y, &mut trial_y, &d, &h_scaled, &g_scaled)
-                    .unwrap_or(step.predicted);
-                // θ > 0 and λ > 0 (K positive definite, modes of a stable structure); the
-                // radius keeps them, a trial outside is treated like one that ascends.
-                let trial = if trial_y.iter().all(|v| *v > 0.0) {
-                    self.reduced(&trial_y[..nm], &trial_y[nm..]).ok()
-                } else {
-                    None
-                };
-                let Some(trial) = trial else {
-                    delta = 0.25 * length.min(delta);
-                    continue;
-                };
-                // Ratio of the actual to the predicted decrease.
-                let rho = (cur.value - trial.value) / predicted;
-                if trial.value < cur.value && rho > TRUST_ACCEPT {
-                    if rho > 0.75 && step.on_boundary {
-                        delta = (2.0 * delta).min(TRUST_MAX_RADIUS);
-                    } else if rho < 0.25 {
-                        delta = 0.25 * length;
-                    }
-                    y = trial_y;
-                    cur = trial;
-                    least_mu = least_mu.min(step.mu / h_diag.max(f64::MIN_POSITIVE));
-                    accepted = true;
-                    break;
-                }
-                // A rejected step whose predicted decrease F cannot even resolve: the
-                // minimum is reached to F's rounding (shrinking the radius would only spend
-                // evaluations on rounding noise).
-                if predicted <= NEWTON_RESOLUTION * cur.value.abs() {
-                    break;
-                }
-                delta = 0.25 * length.min(delta);
-            }
+            let accepted = self.trust_step(&mut it, &hessian, &gradient, scale_y);
             iterations += 1;
-            self.report(iterations, cur.value, &y[nm..]);
+            self.report(iterations, it.cur.value, &it.y[nm..]);
             if !accepted {
                 // No descent possible at machine precision: at the minimum if the Hessian
                 // is positive definite there, otherwise stuck (a saddle or a boundary).
@@ -358,9 +415,9 @@ impl BayesProblem {
             }
         }
         let state = BayesState {
-            lambda: y[..nm].to_vec(),
-            phi: cur.phi,
-            theta: y[nm..].to_vec(),
+            lambda: it.y[..nm].to_vec(),
+            phi: it.cur.phi,
+            theta: it.y[nm..].to_vec(),
         };
         Ok(BayesResult {
             terms: self.objective(&state),
@@ -371,6 +428,75 @@ impl BayesProblem {
             solver: BayesSolver::Newton,
             stages: Vec::new(),
         })
+    }
+
+    /// One trust-region step from `it` on the free `hessian` and `gradient`: trial steps
+    /// of shrinking radius until one lowers `F` by [`TRUST_ACCEPT`] of its predicted
+    /// decrease (then `it` moves there and its radius adapts; `true`), or none can
+    /// (`false`).
+    fn trust_step(
+        &self,
+        it: &mut Iterate,
+        hessian: &Mat<f64>,
+        gradient: &[f64],
+        scale_y: f64,
+    ) -> bool {
+        let ny = it.y.len();
+        // Trust-region step in relative coordinates `y_i = d_i (1 + z_i)`: the region
+        // `‖z‖ ≤ Δ < 1` keeps every λ and θ positive, and scales the modes' eigenvalues
+        // (~1e5) and the parameters (~1) alike.
+        let model = ScaledModel::at(&it.y, hessian, gradient, scale_y);
+        let d = &model.d;
+        while it.delta >= TRUST_MIN_RADIUS {
+            let Some(step) = trust::trust_region_step(&model.h, &model.g, it.delta) else {
+                break;
+            };
+            let mut trial_y: Vec<f64> = (0..ny).map(|i| it.y[i] + d[i] * step.z[i]).collect();
+            let length = step.z.iter().map(|v| v * v).sum::<f64>().sqrt();
+            // Cut at the bounds; a cut step predicts its own decrease.
+            let predicted = self
+                .cut_at_bounds(&it.y, &mut trial_y, d, &model.h, &model.g)
+                .unwrap_or(step.predicted);
+            let Some(trial) = self.trial(&trial_y) else {
+                it.delta = 0.25 * length.min(it.delta);
+                continue;
+            };
+            // Ratio of the actual to the predicted decrease.
+            let rho = (it.cur.value - trial.value) / predicted;
+            if trial.value < it.cur.value && rho > TRUST_ACCEPT {
+                if rho > 0.75 && step.on_boundary {
+                    it.delta = (2.0 * it.delta).min(TRUST_MAX_RADIUS);
+                } else if rho < 0.25 {
+                    it.delta = 0.25 * length;
+                }
+                it.y = trial_y;
+                it.cur = trial;
+                it.least_mu = it
+                    .least_mu
+                    .min(step.mu / model.h_diag.max(f64::MIN_POSITIVE));
+                return true;
+            }
+            // A rejected step whose predicted decrease F cannot even resolve: the
+            // minimum is reached to F's rounding (shrinking the radius would only spend
+            // evaluations on rounding noise).
+            if predicted <= NEWTON_RESOLUTION * it.cur.value.abs() {
+                break;
+            }
+            it.delta = 0.25 * length.min(it.delta);
+        }
+        false
+    }
+
+    /// `F` at a trial `y`, or `None` where it is treated like a step that ascends.
+    fn trial(&self, trial_y: &[f64]) -> Option<Reduced> {
+        let nm = self.modes.len();
+        // θ > 0 and λ > 0 (K positive definite, modes of a stable structure); the
+        // radius keeps them, a trial outside is treated like one that ascends.
+        if trial_y.iter().all(|v| *v > 0.0) {
+            self.reduced(&trial_y[..nm], &trial_y[nm..]).ok()
+        } else {
+            None
+        }
     }
 }
 

@@ -255,10 +255,65 @@ impl AutoSigma {
         progress: &mut dyn FnMut(SigmaTrial),
     ) -> Result<Self, SweepError> {
         log_grid(from, to, 2)?;
-        let mut trials = Vec::new();
+        let mut trials = SigmaTrials::new(model, data, from, settings, progress)?;
+        let target = trials.target;
+        let (bottom, top) = (from.ln(), to.ln());
+        let m_lo = trials.misfit_at(bottom)?;
+        let (sigma, misfit, met) = if m_lo <= target {
+            (from, m_lo, true)
+        } else {
+            // Step up until the misfit falls to ν or the top is reached.
+            let bracket = trials.bracket(bottom, m_lo, top)?;
+            if bracket.m_hi > target && !trials.on_target(bracket.m_hi) {
+                (to, bracket.m_hi, false)
+            } else {
+                let (hi, m_at_hi) = trials.refine(bracket, rel_tol)?;
+                (hi.exp(), m_at_hi, true)
+            }
+        };
+        Ok(trials.choice(sigma, misfit, met))
+    }
+}
+
+/// A bracket of the discrepancy rule's root in `ln σ_c`: the misfit above ν at `lo`, at or
+/// below ν (or on target) at `hi`.
+struct Bracket {
+    lo: f64,
+    m_lo: f64,
+    hi: f64,
+    m_hi: f64,
+}
+
+/// The trials of [`AutoSigma::search`]: each one MAP solve at a σ_c, warm-started from the
+/// solved trial nearest in `ln σ_c`, reported to `progress` as it starts and ends.
+struct SigmaTrials<'a> {
+    model: &'a Model,
+    data: &'a MeasuredData,
+    /// The sweep's settings without the alternating solver; `theta0` is the warm start.
+    settings: SweepSettings,
+    evaluator: Evaluator,
+    /// The χ² expectation ν the misfit is held to.
+    target: f64,
+    progress: &'a mut dyn FnMut(SigmaTrial),
+    /// Every σ_c tried, with its misfit.
+    trials: Vec<(f64, f64)>,
+    /// Solved trials: ln σ_c and θ, for the warm starts.
+    solved: Vec<(f64, Vec<f64>)>,
+}
+
+impl<'a> SigmaTrials<'a> {
+    /// No trial yet; ν from the problem at σ_c = `from` ([`BayesProblem::misfit_dof`]).
+    fn new(
+        model: &'a Model,
+        data: &'a MeasuredData,
+        from: f64,
+        settings: &SweepSettings,
+        progress: &'a mut dyn FnMut(SigmaTrial),
+    ) -> Result<Self, SweepError> {
+        let trials = Vec::new();
         let mut s = settings.clone();
         s.alternating_max_iterations = None;
-        let mut eval = Evaluator::new(model)?;
+        let evaluator = Evaluator::new(model)?;
         let target = {
             let prob = BayesProblem::new(
                 model,
@@ -271,104 +326,140 @@ impl AutoSigma {
             )?;
             prob.misfit_dof()
         };
-        // Solved trials: ln σ_c and θ, for the warm starts.
-        let mut solved: Vec<(f64, Vec<f64>)> = Vec::new();
-        let mut misfit_at = |x: f64| -> Result<f64, SweepError> {
-            let sigma = x.exp();
-            let trial = |misfit| SigmaTrial {
-                index: trials.len() + 1,
-                sigma_c: sigma,
-                misfit,
-                target,
-            };
-            progress(trial(None));
-            if let Some((_, theta)) = solved
-                .iter()
-                .min_by(|a, b| (a.0 - x).abs().total_cmp(&(b.0 - x).abs()))
-            {
-                s.theta0 = theta.clone();
-            }
-            let p = point(model, data, sigma, &s, &mut eval)?;
-            progress(trial(Some(p.terms.measurement)));
-            solved.push((x, p.theta.clone()));
-            trials.push((sigma, p.terms.measurement));
-            Ok(p.terms.measurement)
+        Ok(Self {
+            model,
+            data,
+            settings: s,
+            evaluator,
+            target,
+            progress,
+            trials,
+            solved: Vec::new(),
+        })
+    }
+
+    /// Whether misfit `m` is within [`AUTO_MISFIT_TOL`] of ν.
+    fn on_target(&self, m: f64) -> bool {
+        (m / self.target - 1.0).abs() <= AUTO_MISFIT_TOL
+    }
+
+    /// `ln(m/ν)`, whose root the search finds.
+    fn f(&self, m: f64) -> f64 {
+        (m / self.target).ln()
+    }
+
+    /// The misfit of the MAP at σ_c = `e^x`: one trial.
+    fn misfit_at(&mut self, x: f64) -> Result<f64, SweepError> {
+        let sigma = x.exp();
+        let (index, target) = (self.trials.len() + 1, self.target);
+        let trial = |misfit| SigmaTrial {
+            index,
+            sigma_c: sigma,
+            misfit,
+            target,
         };
-        let on_target = |m: f64| (m / target - 1.0).abs() <= AUTO_MISFIT_TOL;
-        let f = |m: f64| (m / target).ln();
-        let (bottom, top) = (from.ln(), to.ln());
-        let m_lo = misfit_at(bottom)?;
-        let (sigma, misfit, met) = if m_lo <= target {
-            (from, m_lo, true)
-        } else {
-            // Step up until the misfit falls to ν or the top is reached.
-            let (mut lo0, mut m_lo) = (bottom, m_lo);
-            let mut step = AUTO_BRACKET_STEP.ln();
-            let (hi0, m_hi) = loop {
-                let x = (lo0 + step).min(top);
-                step *= 2.0;
-                let m = misfit_at(x)?;
-                if m <= target || on_target(m) || x >= top {
-                    break (x, m);
-                }
-                (lo0, m_lo) = (x, m);
-            };
-            if m_hi > target && !on_target(m_hi) {
-                (to, m_hi, false)
+        (self.progress)(trial(None));
+        if let Some((_, theta)) = self
+            .solved
+            .iter()
+            .min_by(|a, b| (a.0 - x).abs().total_cmp(&(b.0 - x).abs()))
+        {
+            self.settings.theta0 = theta.clone();
+        }
+        let p = point(
+            self.model,
+            self.data,
+            sigma,
+            &self.settings,
+            &mut self.evaluator,
+        )?;
+        (self.progress)(trial(Some(p.terms.measurement)));
+        self.solved.push((x, p.theta.clone()));
+        self.trials.push((sigma, p.terms.measurement));
+        Ok(p.terms.measurement)
+    }
+
+    /// Steps up from `lo0` (misfit `m_lo` above ν) by [`AUTO_BRACKET_STEP`], its square,
+    /// its fourth power… until the misfit falls to ν or on target, or `top` is reached.
+    fn bracket(&mut self, mut lo0: f64, mut m_lo: f64, top: f64) -> Result<Bracket, SweepError> {
+        let mut step = AUTO_BRACKET_STEP.ln();
+        let (hi0, m_hi) = loop {
+            let x = (lo0 + step).min(top);
+            step *= 2.0;
+            let m = self.misfit_at(x)?;
+            if m <= self.target || self.on_target(m) || x >= top {
+                break (x, m);
+            }
+            (lo0, m_lo) = (x, m);
+        };
+        Ok(Bracket {
+            lo: lo0,
+            m_lo,
+            hi: hi0,
+            m_hi,
+        })
+    }
+
+    /// Regula falsi (Illinois) on `bracket`, bisecting after a step that did not halve
+    /// it or when its ends are lopsided, until the misfit at `hi` is on target or the
+    /// bracket is `rel_tol` wide in σ_c: `ln σ_c` at `hi` and its misfit.
+    fn refine(&mut self, bracket: Bracket, rel_tol: f64) -> Result<(f64, f64), SweepError> {
+        // f(lo) > 0 ≥ f(hi).
+        let (mut lo, mut hi) = (bracket.lo, bracket.hi);
+        let (mut f_lo, mut f_hi) = (self.f(bracket.m_lo), self.f(bracket.m_hi));
+        let mut m_at_hi = bracket.m_hi;
+        // Which end the last two steps kept (Illinois: halve a kept end's f).
+        let mut kept: Option<bool> = None;
+        // Bisect next when the last step did not halve the bracket.
+        let mut bisect = false;
+        while hi - lo > rel_tol.ln_1p() && !self.on_target(m_at_hi) {
+            let width = hi - lo;
+            // A secant between ends whose f differ by more than a factor of ten
+            // lands next to the smaller one, which moves the bracket by little.
+            let lopsided = f_lo > 10.0 * -f_hi || -f_hi > 10.0 * f_lo;
+            let x = if bisect || lopsided {
+                lo + 0.5 * width
             } else {
-                // f(lo) > 0 ≥ f(hi).
-                let (mut lo, mut hi) = (lo0, hi0);
-                let (mut f_lo, mut f_hi) = (f(m_lo), f(m_hi));
-                let mut m_at_hi = m_hi;
-                // Which end the last two steps kept (Illinois: halve a kept end's f).
-                let mut kept: Option<bool> = None;
-                // Bisect next when the last step did not halve the bracket.
-                let mut bisect = false;
-                while hi - lo > rel_tol.ln_1p() && !on_target(m_at_hi) {
-                    let width = hi - lo;
-                    // A secant between ends whose f differ by more than a factor of ten
-                    // lands next to the smaller one, which moves the bracket by little.
-                    let lopsided = f_lo > 10.0 * -f_hi || -f_hi > 10.0 * f_lo;
-                    let x = if bisect || lopsided {
-                        lo + 0.5 * width
-                    } else {
-                        (hi - f_hi * width / (f_hi - f_lo))
-                            .clamp(lo + 0.1 * width, hi - 0.1 * width)
-                    };
-                    let m = misfit_at(x)?;
-                    if m <= target {
-                        (hi, f_hi, m_at_hi) = (x, f(m), m);
-                        if kept == Some(false) {
-                            f_lo *= 0.5;
-                        }
-                        kept = Some(false);
-                    } else {
-                        (lo, f_lo) = (x, f(m));
-                        if kept == Some(true) {
-                            f_hi *= 0.5;
-                        }
-                        kept = Some(true);
-                        if on_target(m) {
-                            // Within the tolerance above ν: as good a σ_c as one below.
-                            (hi, m_at_hi) = (x, m);
-                        }
-                    }
-                    bisect = hi - lo > 0.5 * width;
+                (hi - f_hi * width / (f_hi - f_lo)).clamp(lo + 0.1 * width, hi - 0.1 * width)
+            };
+            let m = self.misfit_at(x)?;
+            if m <= self.target {
+                (hi, f_hi, m_at_hi) = (x, self.f(m), m);
+                if kept == Some(false) {
+                    f_lo *= 0.5;
                 }
-                (hi.exp(), m_at_hi, true)
+                kept = Some(false);
+            } else {
+                (lo, f_lo) = (x, self.f(m));
+                if kept == Some(true) {
+                    f_hi *= 0.5;
+                }
+                kept = Some(true);
+                if self.on_target(m) {
+                    // Within the tolerance above ν: as good a σ_c as one below.
+                    (hi, m_at_hi) = (x, m);
+                }
             }
-        };
-        let theta = solved
+            bisect = hi - lo > 0.5 * width;
+        }
+        Ok((hi, m_at_hi))
+    }
+
+    /// The search's outcome at `sigma` (`misfit`, `met`), with every trial and the θ of
+    /// the trial solved at `sigma`, if any.
+    fn choice(self, sigma: f64, misfit: f64, met: bool) -> AutoSigma {
+        let theta = self
+            .solved
             .iter()
             .find(|(x, _)| (x - sigma.ln()).abs() <= 1e-12)
             .map(|(_, t)| t.clone());
-        Ok(Self {
+        AutoSigma {
             sigma_c: sigma,
-            target,
+            target: self.target,
             misfit,
             met,
-            trials,
+            trials: self.trials,
             theta,
-        })
+        }
     }
 }

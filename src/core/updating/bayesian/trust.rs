@@ -38,91 +38,8 @@ pub(super) fn trust_region_step(h: &Mat<f64>, g: &[f64], delta: f64) -> Option<T
     if !s.iter().chain(&a).all(|v| v.is_finite()) {
         return None;
     }
-    let lmin = s.iter().copied().fold(f64::INFINITY, f64::min);
-    let smax = s.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
-    // Eigenvalues within rounding of the smallest count as its eigenspace.
-    let tie = 1e-12 * smax.max(f64::MIN_POSITIVE);
-    let norm_at = |mu: f64| -> f64 {
-        a.iter()
-            .zip(&s)
-            .map(|(ai, si)| (ai / (si + mu)).powi(2))
-            .sum::<f64>()
-            .sqrt()
-    };
     // Coefficients of z in the eigenbasis, and whether the step is on the boundary.
-    let (c, mu, on_boundary): (Vec<f64>, f64, bool) = if lmin > tie && norm_at(0.0) <= delta {
-        (
-            a.iter().zip(&s).map(|(ai, si)| -ai / si).collect(),
-            0.0,
-            false,
-        )
-    } else {
-        let lo0 = (-lmin).max(0.0);
-        // Part of g outside the smallest eigenspace decides between the easy and hard case.
-        let in_min: f64 = a
-            .iter()
-            .zip(&s)
-            .filter(|(_, si)| **si - lmin <= tie)
-            .map(|(ai, _)| ai * ai)
-            .sum::<f64>()
-            .sqrt();
-        let gnorm = a.iter().map(|v| v * v).sum::<f64>().sqrt();
-        // Length of the step at μ = −λ_min without the smallest eigenspace.
-        let rest = || -> f64 {
-            a.iter()
-                .zip(&s)
-                .filter(|(_, si)| **si - lmin > tie)
-                .map(|(ai, si)| (ai / (si - lmin)).powi(2))
-                .sum::<f64>()
-                .sqrt()
-        };
-        if in_min <= 1e-14 * gnorm.max(f64::MIN_POSITIVE) && rest() < delta {
-            // Hard case: g has no component along the smallest eigenvector, and even at
-            // μ = −λ_min the step is inside; complete it to the boundary along that vector.
-            let mut c: Vec<f64> = a
-                .iter()
-                .zip(&s)
-                .map(|(ai, si)| {
-                    if *si - lmin > tie {
-                        -ai / (si - lmin)
-                    } else {
-                        0.0
-                    }
-                })
-                .collect();
-            let len2: f64 = c.iter().map(|v| v * v).sum();
-            let i0 = (0..n)
-                .min_by(|&i, &j| s[i].total_cmp(&s[j]))
-                .expect("n ≥ 1");
-            c[i0] = (delta * delta - len2).max(0.0).sqrt();
-            (c, lo0, true)
-        } else {
-            // Easy case: ‖z(μ)‖ decreases from above Δ (at μ → lo0) to 0; bracket and
-            // bisect (n is small, and bisection cannot fail).
-            let mut lo = lo0;
-            let mut hi = lo0 + gnorm / delta + smax.max(f64::MIN_POSITIVE);
-            while norm_at(hi) > delta {
-                hi *= 2.0;
-            }
-            for _ in 0..200 {
-                let mid = 0.5 * (lo + hi);
-                if mid <= lo || mid >= hi {
-                    break;
-                }
-                if norm_at(mid) > delta {
-                    lo = mid;
-                } else {
-                    hi = mid;
-                }
-            }
-            let mu = hi;
-            (
-                a.iter().zip(&s).map(|(ai, si)| -ai / (si + mu)).collect(),
-                mu,
-                true,
-            )
-        }
-    };
+    let (c, mu, on_boundary) = Eigenbasis::new(n, &s, &a).solve(delta);
     let predicted = -(0..n)
         .map(|i| a[i] * c[i] + 0.5 * s[i] * c[i] * c[i])
         .sum::<f64>();
@@ -135,6 +52,148 @@ pub(super) fn trust_region_step(h: &Mat<f64>, g: &[f64], delta: f64) -> Option<T
         predicted,
         on_boundary,
     })
+}
+
+/// The subproblem in the eigenbasis of `H`: its eigenvalues `s` and `g`'s coordinates `a`.
+struct Eigenbasis<'a> {
+    n: usize,
+    s: &'a [f64],
+    a: &'a [f64],
+    /// The smallest eigenvalue `λ_min`.
+    lmin: f64,
+    /// The largest eigenvalue in magnitude.
+    smax: f64,
+    /// Eigenvalues within rounding of the smallest count as its eigenspace.
+    tie: f64,
+}
+
+impl<'a> Eigenbasis<'a> {
+    /// The subproblem for eigenvalues `s` and gradient coordinates `a` (`n` of each).
+    fn new(n: usize, s: &'a [f64], a: &'a [f64]) -> Self {
+        let lmin = s.iter().copied().fold(f64::INFINITY, f64::min);
+        let smax = s.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
+        // Eigenvalues within rounding of the smallest count as its eigenspace.
+        let tie = 1e-12 * smax.max(f64::MIN_POSITIVE);
+        Self {
+            n,
+            s,
+            a,
+            lmin,
+            smax,
+            tie,
+        }
+    }
+
+    /// `‖z(μ)‖ = ‖(H + μI)⁻¹g‖`.
+    fn norm_at(&self, mu: f64) -> f64 {
+        self.a
+            .iter()
+            .zip(self.s)
+            .map(|(ai, si)| (ai / (si + mu)).powi(2))
+            .sum::<f64>()
+            .sqrt()
+    }
+
+    /// The coefficients of `z`, `μ` and whether `z` is on the boundary: the Newton step
+    /// where `H` is positive definite and that step is within `delta`, else a boundary step.
+    fn solve(&self, delta: f64) -> (Vec<f64>, f64, bool) {
+        if self.lmin > self.tie && self.norm_at(0.0) <= delta {
+            (
+                self.a.iter().zip(self.s).map(|(ai, si)| -ai / si).collect(),
+                0.0,
+                false,
+            )
+        } else {
+            self.on_boundary(delta)
+        }
+    }
+
+    /// A step on the boundary `‖z‖ = delta`: the hard case if `g` has no component along
+    /// the smallest eigenspace and the step at `μ = −λ_min` is inside, else the easy case.
+    fn on_boundary(&self, delta: f64) -> (Vec<f64>, f64, bool) {
+        let lo0 = (-self.lmin).max(0.0);
+        // Part of g outside the smallest eigenspace decides between the easy and hard case.
+        let in_min: f64 = self
+            .a
+            .iter()
+            .zip(self.s)
+            .filter(|(_, si)| **si - self.lmin <= self.tie)
+            .map(|(ai, _)| ai * ai)
+            .sum::<f64>()
+            .sqrt();
+        let gnorm = self.a.iter().map(|v| v * v).sum::<f64>().sqrt();
+        if in_min <= 1e-14 * gnorm.max(f64::MIN_POSITIVE) && self.rest() < delta {
+            (self.hard_case(delta), lo0, true)
+        } else {
+            let mu = self.easy_case(delta, lo0, gnorm);
+            (
+                self.a
+                    .iter()
+                    .zip(self.s)
+                    .map(|(ai, si)| -ai / (si + mu))
+                    .collect(),
+                mu,
+                true,
+            )
+        }
+    }
+
+    /// Length of the step at μ = −λ_min without the smallest eigenspace.
+    fn rest(&self) -> f64 {
+        self.a
+            .iter()
+            .zip(self.s)
+            .filter(|(_, si)| **si - self.lmin > self.tie)
+            .map(|(ai, si)| (ai / (si - self.lmin)).powi(2))
+            .sum::<f64>()
+            .sqrt()
+    }
+
+    /// Hard case: g has no component along the smallest eigenvector, and even at
+    /// μ = −λ_min the step is inside; complete it to the boundary along that vector.
+    fn hard_case(&self, delta: f64) -> Vec<f64> {
+        let (s, lmin, tie) = (self.s, self.lmin, self.tie);
+        let mut c: Vec<f64> = self
+            .a
+            .iter()
+            .zip(s)
+            .map(|(ai, si)| {
+                if *si - lmin > tie {
+                    -ai / (si - lmin)
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let len2: f64 = c.iter().map(|v| v * v).sum();
+        let i0 = (0..self.n)
+            .min_by(|&i, &j| s[i].total_cmp(&s[j]))
+            .expect("n ≥ 1");
+        c[i0] = (delta * delta - len2).max(0.0).sqrt();
+        c
+    }
+
+    /// Easy case: ‖z(μ)‖ decreases from above Δ (at μ → lo0) to 0; bracket and bisect (n
+    /// is small, and bisection cannot fail). The `μ` with `‖z(μ)‖ ≤ delta`, to rounding.
+    fn easy_case(&self, delta: f64, lo0: f64, gnorm: f64) -> f64 {
+        let mut lo = lo0;
+        let mut hi = lo0 + gnorm / delta + self.smax.max(f64::MIN_POSITIVE);
+        while self.norm_at(hi) > delta {
+            hi *= 2.0;
+        }
+        for _ in 0..200 {
+            let mid = 0.5 * (lo + hi);
+            if mid <= lo || mid >= hi {
+                break;
+            }
+            if self.norm_at(mid) > delta {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        hi
+    }
 }
 
 #[cfg(test)]

@@ -1,0 +1,203 @@
+//! What the worker does with a batch from the queue: write-ahead (every set logged, one
+//! fsync for the batch), then each input handled in order; raw blocks through the accel
+//! front, whose windows' modal sets are logged and tracked like received ones.
+
+use std::panic::AssertUnwindSafe;
+use std::sync::atomic::Ordering;
+use std::time::Instant;
+
+use anyhow::Result;
+use chrono::{DateTime, Utc};
+
+use super::{Input, Worker, panic_message};
+use crate::contract::modal_set::Rejection;
+use crate::contract::rejected::REJECTED_PAYLOAD_LIMIT;
+use crate::contract::{Output, WalPosition};
+use crate::daemon::metrics::Shared;
+use crate::io::driver::emit;
+use crate::io::mcap::to_ns;
+use crate::pipeline::Action;
+use crate::pipeline::accel::FrontEvent;
+
+impl Worker {
+    /// Write-ahead: logs every set of `batch`, makes them durable with one fsync, then
+    /// handles them in order.
+    pub(super) fn commit_and_handle(&mut self, batch: Vec<Input>) -> Result<()> {
+        let shared = self.out.shared.clone();
+        let mut positions = Vec::with_capacity(batch.len());
+        for input in &batch {
+            positions.push(self.log_input(&shared, input)?);
+        }
+        self.sync_logged(&shared, &positions)?;
+        for (input, pos) in batch.into_iter().zip(positions) {
+            self.handle_input(&shared, input, pos)?;
+            shared.beat();
+        }
+        self.update_status();
+        Ok(())
+    }
+
+    /// Takes one input off the queue's counts and, a set or an environment reading, logs
+    /// it (its write-ahead position); not yet durable.
+    fn log_input(&mut self, shared: &Shared, input: &Input) -> Result<Option<WalPosition>> {
+        Ok(match input {
+            Input::Set { received, payload } => {
+                shared.depth.fetch_sub(1, Ordering::Relaxed);
+                shared
+                    .queued_bytes
+                    .fetch_sub(payload.len() as u64, Ordering::Relaxed);
+                Some(
+                    self.out
+                        .log
+                        .write_input("modal", to_ns(*received)?, payload)?,
+                )
+            }
+            Input::Oversize { .. } => {
+                shared.depth.fetch_sub(1, Ordering::Relaxed);
+                None
+            }
+            // Raw blocks are not logged (a day of 42 channels at 1 kHz is 19 GB); the
+            // modal set of each window is, as an input, when it is identified.
+            Input::Accel { payload, .. } => {
+                shared.depth.fetch_sub(1, Ordering::Relaxed);
+                shared
+                    .queued_bytes
+                    .fetch_sub(payload.len() as u64, Ordering::Relaxed);
+                None
+            }
+            Input::Environment { received, payload } => {
+                shared.depth.fetch_sub(1, Ordering::Relaxed);
+                shared
+                    .queued_bytes
+                    .fetch_sub(payload.len() as u64, Ordering::Relaxed);
+                Some(
+                    self.out
+                        .log
+                        .write_input("environment", to_ns(*received)?, payload)?,
+                )
+            }
+            Input::Shutdown => None,
+        })
+    }
+
+    /// The group commit: one fsync for the inputs of a batch that were logged, counted in
+    /// the write-ahead log's status (none when nothing was logged).
+    fn sync_logged(&mut self, shared: &Shared, positions: &[Option<WalPosition>]) -> Result<()> {
+        let logged = positions.iter().flatten().count() as u64;
+        if logged > 0 {
+            let t = Instant::now();
+            self.out.log.sync()?;
+            let ms = t.elapsed().as_secs_f64() * 1e3;
+            shared.with_status(|st| {
+                st.wal.syncs += 1;
+                st.wal.sets += logged;
+                st.wal.sync_ms += ms;
+            });
+        }
+        Ok(())
+    }
+
+    /// Handles one input of a committed batch; `pos` is where it was logged, if it was.
+    fn handle_input(
+        &mut self,
+        shared: &Shared,
+        input: Input,
+        pos: Option<WalPosition>,
+    ) -> Result<()> {
+        match input {
+            Input::Set { received, payload } => {
+                self.handle(received, &payload)?;
+                if let Some(p) = pos {
+                    self.handled_upto = Some(p.after());
+                }
+            }
+            Input::Oversize {
+                received,
+                size,
+                head,
+                digest,
+            } => {
+                let rej = Rejection {
+                    field: "payload".into(),
+                    reason: format!(
+                        "{size} bytes exceeds the limit of {} bytes (daemon.max_payload_bytes)",
+                        shared.max_payload
+                    ),
+                };
+                let o = self.tracker.refuse(received, &rej, &head, size, digest);
+                self.publish_guarded(received, &head, vec![Action::Publish(o)])?;
+            }
+            Input::Accel { received, payload } => self.handle_accel(received, &payload)?,
+            Input::Environment { received, payload } => {
+                let actions = self.tracker.handle_environment(received, &payload);
+                self.dirty = true;
+                self.publish_guarded(received, &payload, actions)?;
+                if let Some(p) = pos {
+                    self.handled_upto = Some(p.after());
+                }
+            }
+            Input::Shutdown => {}
+        }
+        Ok(())
+    }
+
+    /// Feeds one raw block to the accel front; a panic there rejects the block.
+    fn handle_accel(&mut self, received: DateTime<Utc>, payload: &[u8]) -> Result<()> {
+        let events = std::panic::catch_unwind(AssertUnwindSafe(|| self.front.handle(payload)))
+            .unwrap_or_else(|panic| {
+                vec![FrontEvent::Refused(Rejection {
+                    field: "payload".into(),
+                    reason: format!(
+                        "identifying this block's window failed (internal error: {})",
+                        panic_message(&*panic)
+                    ),
+                })]
+            });
+        for e in events {
+            self.front_event(received, payload, e)?;
+        }
+        Ok(())
+    }
+
+    /// A window's modal set is logged as an input (write-ahead), published for others
+    /// and tracked like a received set; a refused block or a dropped window is published
+    /// on `rejected`.
+    pub(super) fn front_event(
+        &mut self,
+        received: DateTime<Utc>,
+        payload: &[u8],
+        e: FrontEvent,
+    ) -> Result<()> {
+        match e {
+            FrontEvent::Set(set) => {
+                let bytes = serde_json::to_vec(&set.to_json())?;
+                let pos = self
+                    .out
+                    .log
+                    .write_input("modal", to_ns(received)?, &bytes)?;
+                self.out.log.sync()?;
+                emit(&mut self.out, Output::Modal(set))?;
+                self.handle(received, &bytes)?;
+                self.handled_upto = Some(pos.after());
+            }
+            FrontEvent::Refused(rej) => {
+                let head = &payload[..payload.len().min(REJECTED_PAYLOAD_LIMIT)];
+                let o = self.tracker.refuse(
+                    received,
+                    &rej,
+                    head,
+                    payload.len(),
+                    crate::contract::digest(payload),
+                );
+                self.publish_guarded(received, head, vec![Action::Publish(o)])?;
+            }
+            FrontEvent::Dropped(rej) => {
+                let o = self
+                    .tracker
+                    .refuse(received, &rej, &[], 0, crate::contract::digest(&[]));
+                self.publish_guarded(received, &[], vec![Action::Publish(o)])?;
+            }
+        }
+        Ok(())
+    }
+}
