@@ -166,16 +166,37 @@ fn run_block(dir: &Path, script: &str) -> Output {
     }
 }
 
+/// A background daemon, killed if a failing example ends the page early (else it would
+/// outlive the test and hold the default ports).
+struct Daemon(Option<Child>);
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        if let Some(mut child) = self.0.take() {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+}
+
 /// `boltwatch run` in the background, once its metrics port answers.
-fn start_daemon(dir: &Path) -> Child {
+fn start_daemon(dir: &Path) -> Daemon {
     let log = std::fs::File::create(dir.join("daemon.log")).unwrap();
-    let child = shell(dir, "exec boltwatch run")
-        .stdout(Stdio::null())
-        .stderr(log)
-        .spawn()
-        .expect("daemon starts");
+    let mut daemon = Daemon(Some(
+        shell(dir, "exec boltwatch run")
+            .stdout(Stdio::null())
+            .stderr(log)
+            .spawn()
+            .expect("daemon starts"),
+    ));
     let start = Instant::now();
     while TcpStream::connect("127.0.0.1:9464").is_err() {
+        let exited = daemon.0.as_mut().and_then(|c| c.try_wait().ok().flatten());
+        assert!(
+            exited.is_none(),
+            "the daemon exited ({exited:?}) before serving; its log:\n{}",
+            std::fs::read_to_string(dir.join("daemon.log")).unwrap_or_default()
+        );
         assert!(
             start.elapsed() < Duration::from_secs(120),
             "the daemon's metrics never answered; its log:\n{}",
@@ -183,11 +204,20 @@ fn start_daemon(dir: &Path) -> Child {
         );
         std::thread::sleep(Duration::from_millis(100));
     }
-    child
+    // The port answered: ours, not another daemon's (which would leave ours without one).
+    std::thread::sleep(Duration::from_millis(300));
+    let exited = daemon.0.as_mut().and_then(|c| c.try_wait().ok().flatten());
+    assert!(
+        exited.is_none(),
+        "the daemon exited ({exited:?}): is another one using the default ports? Its log:\n{}",
+        std::fs::read_to_string(dir.join("daemon.log")).unwrap_or_default()
+    );
+    daemon
 }
 
 /// SIGINT, as Ctrl-C: the daemon must stop cleanly (exit 0) within a minute.
-fn stop_daemon(mut child: Child, dir: &Path, where_: &str) {
+fn stop_daemon(mut daemon: Daemon, dir: &Path, where_: &str) {
+    let mut child = daemon.0.take().expect("a running daemon");
     unsafe {
         libc::kill(child.id() as i32, libc::SIGINT);
     }
