@@ -74,12 +74,15 @@ pub struct SetCounts {
 }
 
 /// Group commits of the write-ahead log: `syncs` fsyncs made `sets` sets durable in
-/// `sync_ms` milliseconds in all.
+/// `sync_ms` milliseconds in all; `redeliveries` inputs were not logged because the same
+/// bytes had been handled (or logged in the same batch) already.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct WalStatus {
     pub syncs: u64,
     pub sets: u64,
     pub sync_ms: f64,
+    #[serde(default)]
+    pub redeliveries: u64,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

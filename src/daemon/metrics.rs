@@ -128,6 +128,15 @@ pub struct Shared {
 }
 
 impl Shared {
+    /// Takes an input the worker took off the queue off the queue's depth and bytes.
+    pub fn dequeued(&self, input: &super::worker::Input) {
+        if input.counted() {
+            self.depth.fetch_sub(1, Ordering::Relaxed);
+            self.queued_bytes
+                .fetch_sub(input.queued_bytes(), Ordering::Relaxed);
+        }
+    }
+
     pub fn new(
         structure: &str,
         queue_capacity: usize,

@@ -62,6 +62,23 @@ pub enum Input {
     Shutdown,
 }
 
+impl Input {
+    /// The payload bytes this input holds in the queue's byte budget.
+    pub fn queued_bytes(&self) -> u64 {
+        match self {
+            Input::Set { payload, .. }
+            | Input::Accel { payload, .. }
+            | Input::Environment { payload, .. } => payload.len() as u64,
+            Input::Oversize { .. } | Input::Shutdown => 0,
+        }
+    }
+
+    /// Whether the input is counted in the queue's depth (all but [`Input::Shutdown`]).
+    pub fn counted(&self) -> bool {
+        !matches!(self, Input::Shutdown)
+    }
+}
+
 /// How long the worker waits for a set before doing its housekeeping.
 const IDLE_TICK: Duration = Duration::from_millis(200);
 

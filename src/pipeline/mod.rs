@@ -340,6 +340,12 @@ impl Tracker {
         }
     }
 
+    /// Whether a payload of this content digest was handled within the last
+    /// [`DEDUP_WINDOW`]: [`Tracker::handle`] would skip it as a re-delivery.
+    pub fn has_seen(&self, digest: u128) -> bool {
+        self.state.seen.contains(&digest)
+    }
+
     /// Handles one raw payload received at `received` (the driver's clock or the
     /// recording's log time; used in rejections, and live as the clock `time` may not be
     /// far ahead of). A payload handled before (the same bytes, within the last

@@ -2,8 +2,8 @@
 //! fsync for the batch), then each input handled in order; raw blocks through the accel
 //! front, whose windows' modal sets are logged and tracked like received ones.
 
+use std::collections::HashSet;
 use std::panic::AssertUnwindSafe;
-use std::sync::atomic::Ordering;
 use std::time::Instant;
 
 use anyhow::Result;
@@ -12,7 +12,7 @@ use chrono::{DateTime, Utc};
 use super::{Input, Worker, panic_message};
 use crate::contract::modal_set::Rejection;
 use crate::contract::rejected::REJECTED_PAYLOAD_LIMIT;
-use crate::contract::{Output, WalPosition};
+use crate::contract::{Output, WalPosition, digest};
 use crate::daemon::metrics::Shared;
 use crate::io::driver::emit;
 use crate::io::mcap::to_ns;
@@ -20,13 +20,15 @@ use crate::pipeline::Action;
 use crate::pipeline::accel::FrontEvent;
 
 impl Worker {
-    /// Write-ahead: logs every set of `batch`, makes them durable with one fsync, then
-    /// handles them in order.
+    /// Write-ahead: logs every set of `batch` that is not a re-delivery, makes them
+    /// durable with one fsync, then handles them in order (a re-delivery is handled too,
+    /// so the tracker counts it, and publishes nothing).
     pub(super) fn commit_and_handle(&mut self, batch: Vec<Input>) -> Result<()> {
         let shared = self.out.shared.clone();
         let mut positions = Vec::with_capacity(batch.len());
+        let mut logged = HashSet::new();
         for input in &batch {
-            positions.push(self.log_input(&shared, input)?);
+            positions.push(self.log_input(&shared, input, &mut logged)?);
         }
         self.sync_logged(&shared, &positions)?;
         for (input, pos) in batch.into_iter().zip(positions) {
@@ -38,45 +40,36 @@ impl Worker {
     }
 
     /// Takes one input off the queue's counts and, a set or an environment reading, logs
-    /// it (its write-ahead position); not yet durable.
-    fn log_input(&mut self, shared: &Shared, input: &Input) -> Result<Option<WalPosition>> {
+    /// it (its write-ahead position); not yet durable. A set whose bytes the tracker has
+    /// handled, or that `logged` holds (an earlier set of the batch), is not logged again.
+    fn log_input(
+        &mut self,
+        shared: &Shared,
+        input: &Input,
+        logged: &mut HashSet<u128>,
+    ) -> Result<Option<WalPosition>> {
+        shared.dequeued(input);
         Ok(match input {
             Input::Set { received, payload } => {
-                shared.depth.fetch_sub(1, Ordering::Relaxed);
-                shared
-                    .queued_bytes
-                    .fetch_sub(payload.len() as u64, Ordering::Relaxed);
+                let d = digest(payload);
+                if self.tracker.has_seen(d) || !logged.insert(d) {
+                    shared.with_status(|st| st.wal.redeliveries += 1);
+                    return Ok(None);
+                }
                 Some(
                     self.out
                         .log
                         .write_input("modal", to_ns(*received)?, payload)?,
                 )
             }
-            Input::Oversize { .. } => {
-                shared.depth.fetch_sub(1, Ordering::Relaxed);
-                None
-            }
             // Raw blocks are not logged (a day of 42 channels at 1 kHz is 19 GB); the
             // modal set of each window is, as an input, when it is identified.
-            Input::Accel { payload, .. } => {
-                shared.depth.fetch_sub(1, Ordering::Relaxed);
-                shared
-                    .queued_bytes
-                    .fetch_sub(payload.len() as u64, Ordering::Relaxed);
-                None
-            }
-            Input::Environment { received, payload } => {
-                shared.depth.fetch_sub(1, Ordering::Relaxed);
-                shared
-                    .queued_bytes
-                    .fetch_sub(payload.len() as u64, Ordering::Relaxed);
-                Some(
-                    self.out
-                        .log
-                        .write_input("environment", to_ns(*received)?, payload)?,
-                )
-            }
-            Input::Shutdown => None,
+            Input::Oversize { .. } | Input::Accel { .. } | Input::Shutdown => None,
+            Input::Environment { received, payload } => Some(self.out.log.write_input(
+                "environment",
+                to_ns(*received)?,
+                payload,
+            )?),
         })
     }
 
@@ -182,19 +175,13 @@ impl Worker {
             }
             FrontEvent::Refused(rej) => {
                 let head = &payload[..payload.len().min(REJECTED_PAYLOAD_LIMIT)];
-                let o = self.tracker.refuse(
-                    received,
-                    &rej,
-                    head,
-                    payload.len(),
-                    crate::contract::digest(payload),
-                );
+                let o = self
+                    .tracker
+                    .refuse(received, &rej, head, payload.len(), digest(payload));
                 self.publish_guarded(received, head, vec![Action::Publish(o)])?;
             }
             FrontEvent::Dropped(rej) => {
-                let o = self
-                    .tracker
-                    .refuse(received, &rej, &[], 0, crate::contract::digest(&[]));
+                let o = self.tracker.refuse(received, &rej, &[], 0, digest(&[]));
                 self.publish_guarded(received, &[], vec![Action::Publish(o)])?;
             }
         }

@@ -94,12 +94,7 @@ fn enqueue_as(
         }
     };
     shared.depth.fetch_add(1, Ordering::Relaxed);
-    let bytes = match &input {
-        Input::Set { payload, .. }
-        | Input::Accel { payload, .. }
-        | Input::Environment { payload, .. } => payload.len() as u64,
-        _ => 0,
-    };
+    let bytes = input.queued_bytes();
     let sent = send(tx, input, when_full, deadline);
     if !sent {
         shared.depth.fetch_sub(1, Ordering::Relaxed);
