@@ -238,7 +238,7 @@ fn sigkill_storm(name: &str, start: impl FnOnce(&str, &Path, &Path) -> Command) 
     }
     let files = daemon.log_files().len();
     eprintln!(
-        "{name}: 400 sets, 20 SIGKILLs: {files} log files, {} inputs logged (re-deliveries included), {} sets estimated more than once (identical); last daemon: {} duplicates skipped, {} replayed",
+        "{name}: 400 sets, 20 SIGKILLs: {files} log files, {} inputs logged, {} sets estimated more than once (identical); last daemon: {} duplicates skipped, {} replayed",
         inputs, twice, st["sets"]["duplicates"], st["sets"]["replayed"]
     );
 }
