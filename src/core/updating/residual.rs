@@ -489,20 +489,24 @@ fn pair_mode(
 ) -> (usize, f64) {
     match &mode.shape {
         Some(s) => {
-            // The best candidate by the rule: the highest MAC, or the least misfit.
-            let mut best = (0, f64::INFINITY, f64::NAN);
+            // The best candidate by the rule: the highest MAC, or the least misfit (the
+            // MAC then only of the one chosen).
+            let mut best = (0, f64::INFINITY);
             for k in 0..n_cand {
                 gather(readings, k, &s.channels, dphi_k);
-                let v = mac(&s.values, dphi_k);
                 let score = match rule {
-                    Pairing::Mac => -v,
+                    Pairing::Mac => -mac(&s.values, dphi_k),
                     Pairing::Misfit => mode_misfit(mode, s, eig.lambda[k], dphi_k),
                 };
                 if score < best.1 {
-                    best = (k, score, v);
+                    best = (k, score);
                 }
             }
-            (best.0, best.2)
+            if best.1 == f64::INFINITY {
+                return (0, f64::NAN);
+            }
+            gather(readings, best.0, &s.channels, dphi_k);
+            (best.0, mac(&s.values, dphi_k))
         }
         // Frequency only: the nearest model eigenvalue.
         None => {
