@@ -147,11 +147,7 @@ fn recover(
     let worker = Worker::new(
         structure_model,
         tracker,
-        LiveSink {
-            session: session.clone(),
-            log,
-            shared: shared.clone(),
-        },
+        LiveSink::start(session.clone(), log, shared.clone())?,
         ckpt,
         Duration::from_secs_f64(d.checkpoint_every_s),
         CrosscheckLane {

@@ -1,8 +1,9 @@
 //! One structure's tracking thread: takes modal sets from the bounded queue the Zenoh
 //! subscriber fills, makes them durable in the write-ahead log (one fsync for all the sets
-//! waiting: group commit), runs the [`Tracker`], publishes its outputs over Zenoh, writes
-//! them into the rolling log, checkpoints, and hands cross-checks to a thread of their own
-//! so a slow one never holds up tracking.
+//! waiting: group commit), runs the [`Tracker`], hands its outputs to the writer thread
+//! ([`LiveSink`]), which publishes them over Zenoh and writes them into the rolling log,
+//! checkpoints, and hands cross-checks to a thread of their own so a slow one never holds
+//! up tracking.
 //!
 //! No input stops it: an error or a panic while tracking one set, or while writing that
 //! set's outputs, rejects the set (published on `rejected`, with the error) and the thread
@@ -130,7 +131,7 @@ impl Worker {
             crosscheck,
             tracker.config().shape_weight,
         )?;
-        let w = Self {
+        let mut w = Self {
             tracker,
             out,
             checkpoint_path,
@@ -143,7 +144,7 @@ impl Worker {
             handled_upto: None,
             front,
         };
-        w.update_status();
+        w.update_status()?;
         Ok(w)
     }
 
@@ -158,7 +159,8 @@ impl Worker {
     /// deterministic and resumes bit for bit).
     pub fn resume(&mut self, from: Option<WalPosition>) -> Result<()> {
         if let Some(pos) = from {
-            let inputs = self.out.log.inputs_after(&pos)?;
+            let after = pos.clone();
+            let inputs = self.out.log(move |log| log.inputs_after(&after))?;
             let n = inputs.len() as u64;
             for m in inputs {
                 if m.topic.ends_with("/environment") {
@@ -182,7 +184,7 @@ impl Worker {
                 );
             }
         }
-        self.handled_upto = Some(self.out.log.next_input()?);
+        self.handled_upto = Some(self.out.log(|log| log.next_input())?);
         self.checkpoint()
     }
 
@@ -211,7 +213,7 @@ impl Worker {
                         break;
                     }
                 }
-                Err(RecvTimeoutError::Timeout) => self.out.log.tick()?,
+                Err(RecvTimeoutError::Timeout) => self.out.log(|log| log.tick())?,
             }
             self.lane.emit_ready(&mut self.out)?;
             self.report_drops()?;
@@ -228,9 +230,10 @@ impl Worker {
         self.checkpoint()?;
         let Self { out, lane, .. } = self;
         drop(lane);
-        let closed = out.log.close()?;
+        let structure = out.shared.structure.clone();
+        let closed = out.close()?;
         tracing::info!(
-            structure = out.shared.structure,
+            structure,
             "tracker stopped; checkpoint written; log files closed: {}",
             closed.len()
         );
@@ -270,7 +273,7 @@ impl Worker {
     /// Makes the log durable, then writes the tracker's state, with the write-ahead
     /// position of the first set not yet handled, atomically.
     fn checkpoint(&mut self) -> Result<()> {
-        self.out.log.sync()?;
+        self.out.log(|log| log.sync())?;
         let mut c = self.tracker.checkpoint();
         c.wal = self.handled_upto.clone();
         checkpoint::write_atomic(&self.checkpoint_path, &c)
@@ -284,9 +287,11 @@ impl Worker {
         Ok(())
     }
 
-    fn update_status(&self) {
+    fn update_status(&mut self) -> Result<()> {
+        let log = self
+            .out
+            .log(|log| Ok(log.current().map(|p| p.display().to_string())))?;
         let t = self.tracker.state();
-        let log = self.out.log.current().map(|p| p.display().to_string());
         self.out.shared.with_status(|st| {
             st.accepted = t.accepted;
             st.rejected = t.rejected;
@@ -296,5 +301,6 @@ impl Worker {
             st.last_set_time = t.last_time.map(rfc3339);
             st.log_file = log;
         });
+        Ok(())
     }
 }

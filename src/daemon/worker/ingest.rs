@@ -19,35 +19,37 @@ use crate::io::mcap::to_ns;
 use crate::pipeline::Action;
 use crate::pipeline::accel::FrontEvent;
 
+/// An input's write-ahead entry: its topic suffix, its log time and its bytes.
+type WalEntry = (&'static str, u64, Vec<u8>);
+
 impl Worker {
     /// Write-ahead: logs every set of `batch` that is not a re-delivery, makes them
     /// durable with one fsync, then handles them in order (a re-delivery is handled too,
     /// so the tracker counts it, and publishes nothing).
     pub(super) fn commit_and_handle(&mut self, batch: Vec<Input>) -> Result<()> {
         let shared = self.out.shared.clone();
-        let mut positions = Vec::with_capacity(batch.len());
         let mut logged = HashSet::new();
-        for input in &batch {
-            positions.push(self.log_input(&shared, input, &mut logged)?);
-        }
-        self.sync_logged(&shared, &positions)?;
+        let entries = batch
+            .iter()
+            .map(|input| self.wal_entry(&shared, input, &mut logged))
+            .collect::<Result<Vec<_>>>()?;
+        let positions = self.write_ahead(&shared, entries)?;
         for (input, pos) in batch.into_iter().zip(positions) {
             self.handle_input(&shared, input, pos)?;
             shared.beat();
         }
-        self.update_status();
-        Ok(())
+        self.update_status()
     }
 
-    /// Takes one input off the queue's counts and, a set or an environment reading, logs
-    /// it (its write-ahead position); not yet durable. A set whose bytes the tracker has
-    /// handled, or that `logged` holds (an earlier set of the batch), is not logged again.
-    fn log_input(
-        &mut self,
+    /// Takes one input off the queue's counts and, a set or an environment reading, gives
+    /// its write-ahead entry. A set whose bytes the tracker has handled, or that `logged`
+    /// holds (an earlier set of the batch), is not logged again.
+    fn wal_entry(
+        &self,
         shared: &Shared,
         input: &Input,
         logged: &mut HashSet<u128>,
-    ) -> Result<Option<WalPosition>> {
+    ) -> Result<Option<WalEntry>> {
         shared.dequeued(input);
         Ok(match input {
             Input::Set { received, payload } => {
@@ -56,38 +58,47 @@ impl Worker {
                     shared.with_status(|st| st.wal.redeliveries += 1);
                     return Ok(None);
                 }
-                Some(
-                    self.out
-                        .log
-                        .write_input("modal", to_ns(*received)?, payload)?,
-                )
+                Some(("modal", to_ns(*received)?, payload.clone()))
             }
             // Raw blocks are not logged (a day of 42 channels at 1 kHz is 19 GB); the
             // modal set of each window is, as an input, when it is identified.
             Input::Oversize { .. } | Input::Accel { .. } | Input::Shutdown => None,
-            Input::Environment { received, payload } => Some(self.out.log.write_input(
-                "environment",
-                to_ns(*received)?,
-                payload,
-            )?),
+            Input::Environment { received, payload } => {
+                Some(("environment", to_ns(*received)?, payload.clone()))
+            }
         })
     }
 
-    /// The group commit: one fsync for the inputs of a batch that were logged, counted in
-    /// the write-ahead log's status (none when nothing was logged).
-    fn sync_logged(&mut self, shared: &Shared, positions: &[Option<WalPosition>]) -> Result<()> {
-        let logged = positions.iter().flatten().count() as u64;
-        if logged > 0 {
-            let t = Instant::now();
-            self.out.log.sync()?;
-            let ms = t.elapsed().as_secs_f64() * 1e3;
-            shared.with_status(|st| {
-                st.wal.syncs += 1;
-                st.wal.sets += logged;
-                st.wal.sync_ms += ms;
-            });
+    /// The group commit: the entries written into the log and made durable with one fsync
+    /// (none when there is nothing to log), counted in the write-ahead log's status; the
+    /// position of each.
+    fn write_ahead(
+        &mut self,
+        shared: &Shared,
+        entries: Vec<Option<WalEntry>>,
+    ) -> Result<Vec<Option<WalPosition>>> {
+        let logged = entries.iter().flatten().count() as u64;
+        if logged == 0 {
+            return Ok(vec![None; entries.len()]);
         }
-        Ok(())
+        let (positions, ms) = self.out.log(move |log| {
+            let positions = entries
+                .into_iter()
+                .map(|e| {
+                    e.map(|(suffix, time, bytes)| log.write_input(suffix, time, &bytes))
+                        .transpose()
+                })
+                .collect::<Result<Vec<_>>>()?;
+            let t = Instant::now();
+            log.sync()?;
+            Ok((positions, t.elapsed().as_secs_f64() * 1e3))
+        })?;
+        shared.with_status(|st| {
+            st.wal.syncs += 1;
+            st.wal.sets += logged;
+            st.wal.sync_ms += ms;
+        });
+        Ok(positions)
     }
 
     /// Handles one input of a committed batch; `pos` is where it was logged, if it was.
@@ -164,11 +175,12 @@ impl Worker {
         match e {
             FrontEvent::Set(set) => {
                 let bytes = serde_json::to_vec(&set.to_json())?;
-                let pos = self
-                    .out
-                    .log
-                    .write_input("modal", to_ns(received)?, &bytes)?;
-                self.out.log.sync()?;
+                let (time, entry) = (to_ns(received)?, bytes.clone());
+                let pos = self.out.log(move |log| {
+                    let pos = log.write_input("modal", time, &entry)?;
+                    log.sync()?;
+                    Ok(pos)
+                })?;
                 emit(&mut self.out, Output::Modal(set))?;
                 self.handle(received, &bytes)?;
                 self.handled_upto = Some(pos.after());

@@ -1,9 +1,23 @@
 //! Where a structure's outputs go live ([`LiveSink`]): published over Zenoh, written into
 //! the rolling log, noted in the status.
+//!
+//! The rolling log and the Zenoh publications belong to a thread of their own (the
+//! writer), as a replay's output file does: the tracking thread encodes each output and
+//! hands it over, and the writer publishes it and writes it into the log (compressing the
+//! log's chunks) while the next set is tracked. Everything else done with the log, the
+//! write-ahead entries of the inputs, fsyncs, rotation, the sets to handle again at start,
+//! goes to the same thread as a call ([`LiveSink::log`]) that the tracking thread waits
+//! for, so the file holds inputs and outputs in the order the tracking thread produced
+//! them, and an input is durable before it is tracked. A failure to write the log stops
+//! the writer; the next call returns its error, which is fatal (module docs of
+//! [`super`]).
 
+use std::path::PathBuf;
 use std::sync::Arc;
+use std::sync::mpsc::{self, Receiver, SyncSender};
+use std::thread::JoinHandle;
 
-use anyhow::Result;
+use anyhow::{Context, Result, anyhow, bail};
 use zenoh::Wait;
 use zenoh::qos::CongestionControl;
 use zenoh::sample::Locality;
@@ -14,48 +28,176 @@ use crate::daemon::metrics::Shared;
 use crate::io::driver::{JobKind, Sink};
 use crate::io::mcap::{to_ns, topic};
 
-/// Where a structure's outputs go live: Zenoh, the rolling log, the status.
+/// Jobs waiting for the writer at most; then the tracking thread waits (as it did for a
+/// slow subscriber when it published itself: outputs are published with congestion
+/// control *block*).
+const WRITER_QUEUE: usize = 256;
+
+/// Work for the writer thread.
+enum Job {
+    /// Publish an encoded output and write it into the log (a modal set identified here:
+    /// publish only; it is in the log already, as an input).
+    Publish {
+        key: String,
+        time: u64,
+        bytes: Vec<u8>,
+        modal: bool,
+    },
+    /// Run a call on the log and send its result back.
+    Call(Box<dyn FnOnce(&mut RollingLog) + Send>),
+}
+
+/// Where a structure's outputs go live: Zenoh, the rolling log (both on the writer
+/// thread), the status.
 pub struct LiveSink {
-    pub session: zenoh::Session,
-    pub log: RollingLog,
     pub shared: Arc<Shared>,
+    jobs: Option<SyncSender<Job>>,
+    thread: Option<JoinHandle<Result<RollingLog>>>,
+}
+
+impl LiveSink {
+    /// Starts the writer thread on `log`, publishing on `session`.
+    pub fn start(session: zenoh::Session, log: RollingLog, shared: Arc<Shared>) -> Result<Self> {
+        let (tx, rx) = mpsc::sync_channel::<Job>(WRITER_QUEUE);
+        let on_thread = shared.clone();
+        let thread = std::thread::Builder::new()
+            .name(format!("write-{}", shared.structure))
+            .spawn(move || write_loop(rx, log, &session, &on_thread))
+            .context("cannot start the log writer thread")?;
+        Ok(Self {
+            shared,
+            jobs: Some(tx),
+            thread: Some(thread),
+        })
+    }
+
+    /// Runs `f` on the log, on the writer thread after every output handed over before,
+    /// and returns its result.
+    pub fn log<R: Send + 'static>(
+        &mut self,
+        f: impl FnOnce(&mut RollingLog) -> Result<R> + Send + 'static,
+    ) -> Result<R> {
+        let (tx, rx) = mpsc::channel();
+        self.send(Job::Call(Box::new(move |log| {
+            let _ = tx.send(f(log));
+        })))?;
+        match rx.recv() {
+            Ok(r) => r,
+            Err(_) => Err(self.failure()),
+        }
+    }
+
+    /// Waits for everything handed over, then finishes the log's open file; the files this
+    /// log closed.
+    pub fn close(mut self) -> Result<Vec<PathBuf>> {
+        self.jobs.take();
+        let log = match self.thread.take().map(JoinHandle::join) {
+            Some(Ok(r)) => r?,
+            Some(Err(_)) => bail!("the log writer thread panicked"),
+            None => bail!("the log writer has stopped"),
+        };
+        log.close()
+    }
+
+    fn send(&mut self, job: Job) -> Result<()> {
+        let jobs = self
+            .jobs
+            .as_ref()
+            .ok_or_else(|| anyhow!("the log writer has stopped"))?;
+        match jobs.send(job) {
+            Ok(()) => Ok(()),
+            Err(_) => Err(self.failure()),
+        }
+    }
+
+    /// The error that stopped the writer thread.
+    fn failure(&mut self) -> anyhow::Error {
+        self.jobs.take();
+        match self.thread.take().map(JoinHandle::join) {
+            Some(Ok(Err(e))) => e.context("writing the log"),
+            Some(Ok(Ok(_))) => anyhow!("the log writer stopped"),
+            Some(Err(_)) => anyhow!("the log writer thread panicked"),
+            None => anyhow!("the log writer has stopped"),
+        }
+    }
+}
+
+/// The writer thread: jobs in order until the tracking thread lets go; the log back.
+fn write_loop(
+    jobs: Receiver<Job>,
+    mut log: RollingLog,
+    session: &zenoh::Session,
+    shared: &Shared,
+) -> Result<RollingLog> {
+    for job in jobs {
+        match job {
+            Job::Publish {
+                key,
+                time,
+                bytes,
+                modal,
+            } => {
+                if !modal {
+                    log.write(&key, time, &bytes)?;
+                }
+                publish(session, shared, &key, bytes, modal);
+            }
+            Job::Call(f) => f(&mut log),
+        }
+    }
+    Ok(log)
+}
+
+/// Publishes one output over Zenoh; a failure is logged and counted, not fatal. A modal set
+/// identified here goes to the others only (this daemon's own modal subscriber would take
+/// it again).
+fn publish(session: &zenoh::Session, shared: &Shared, key: &str, bytes: Vec<u8>, modal: bool) {
+    let destination = if modal {
+        Locality::Remote
+    } else {
+        Locality::Any
+    };
+    if let Err(e) = session
+        .put(key, bytes)
+        .congestion_control(CongestionControl::Block)
+        .allowed_destination(destination)
+        .wait()
+    {
+        tracing::warn!(structure = shared.structure, "cannot publish on {key}: {e}");
+        shared.with_status(|st| st.publish_errors += 1);
+    }
 }
 
 impl Sink for LiveSink {
-    /// Publishes an output over Zenoh, writes it into the log and notes it in the status.
+    /// Hands an output to the writer (published over Zenoh, written into the log) and
+    /// notes it in the status.
     fn emit(&mut self, output: &Output, bytes: &[u8]) -> Result<()> {
-        let key = topic(output.structure(), output.topic());
-        // A modal set identified here goes to the others only (this daemon's own modal
-        // subscriber would take it again), and it is in the log already, as an input.
-        let modal = matches!(output, Output::Modal(_));
-        let destination = if modal {
-            Locality::Remote
-        } else {
-            Locality::Any
-        };
-        if let Err(e) = self
-            .session
-            .put(&key, bytes.to_vec())
-            .congestion_control(CongestionControl::Block)
-            .allowed_destination(destination)
-            .wait()
-        {
-            tracing::warn!(
-                structure = output.structure(),
-                "cannot publish on {key}: {e}"
-            );
-            self.shared.with_status(|st| st.publish_errors += 1);
-        }
-        if !modal {
-            self.log.write(&key, to_ns(output.time())?, bytes)?;
-        }
-        self.shared.with_status(|st| st.note(output));
-        Ok(())
+        self.hand_over(output, bytes.to_vec())
+    }
+
+    fn emit_owned(&mut self, output: Output) -> Result<()> {
+        let bytes = output.to_wire();
+        self.hand_over(&output, bytes)
     }
 
     fn skipped(&mut self, _structure: &str, job: JobKind) {
         if job == JobKind::Crosscheck {
             self.shared.with_status(|st| st.crosschecks_skipped += 1);
         }
+    }
+}
+
+impl LiveSink {
+    /// The key and log time are found here, so an output they fail for fails with its set.
+    fn hand_over(&mut self, output: &Output, bytes: Vec<u8>) -> Result<()> {
+        let job = Job::Publish {
+            key: topic(output.structure(), output.topic()),
+            time: to_ns(output.time())?,
+            bytes,
+            modal: matches!(output, Output::Modal(_)),
+        };
+        self.send(job)?;
+        self.shared.with_status(|st| st.note(output));
+        Ok(())
     }
 }
