@@ -164,11 +164,23 @@ fn table(d: &Diagnosis, seconds: f64) -> String {
         "{:>4} {:>10} {:>10} {:>10} {:>8} {:>10} {:>8}",
         "mode", "meas Hz", "before σ", "after σ", "MAC bef", "MAC after", "paired"
     );
-    for (b, a) in d.before.modes.iter().zip(&d.after.modes) {
+    for (m, (b, a)) in d.before.modes.iter().zip(&d.after.modes).enumerate() {
+        // The model mode paired after, with the one before when the pairing changed.
+        let paired = if b.paired_with == a.paired_with {
+            a.paired_with.to_string()
+        } else {
+            format!("{}→{}", b.paired_with, a.paired_with)
+        };
         let _ = writeln!(
             s,
             "{:>4} {:>10.3} {:>10.2} {:>10.2} {:>8.4} {:>10.4} {:>8}",
-            a.paired_with, b.measured_hz, b.error_sigma, a.error_sigma, b.mac, a.mac, a.paired_with
+            m + 1,
+            b.measured_hz,
+            b.error_sigma,
+            a.error_sigma,
+            b.mac,
+            a.mac,
+            paired
         );
     }
     s

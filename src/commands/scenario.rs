@@ -195,7 +195,10 @@ fn build_scenario(args: &ScenarioArgs, model: &Model) -> Result<Scenario> {
         match &mut sc.event {
             Event::Loosening { start_day, .. } => *start_day = d,
             Event::Sudden { day, .. } | Event::Mass { day, .. } => *day = d,
-            Event::None => bail!("--event-day: the healthy scenario has no event"),
+            Event::None if sc.seasons.is_some() => bail!(
+                "--event-day: the seasonal scenario's event is a loss set by --loosen, --drop and --day"
+            ),
+            Event::None => bail!("--event-day: the {} scenario has no event", args.name),
         }
     }
     Ok(sc)

@@ -5,6 +5,7 @@
 
 pub mod checkpoint;
 pub mod driver;
+pub mod job_thread;
 pub mod mcap;
 pub mod model;
 pub mod record;

@@ -399,3 +399,28 @@ fn bad_search_options_and_bounds_exit_2_naming_the_value() {
         );
     }
 }
+
+/// `scenario --event-day` on a scenario without an event is refused (exit 2) by what the
+/// scenario is: the healthy one has no event; the seasonal one's is a loss set by
+/// `--loosen`, `--drop` and `--day`. No recording is written.
+#[test]
+fn event_day_without_an_event_names_the_scenario() {
+    for (name, says) in [
+        ("healthy", "the healthy scenario has no event"),
+        ("seasonal", "--loosen, --drop and --day"),
+    ] {
+        let out = tmp(&format!("event-day-{name}.mcap"));
+        let r = boltwatch(&[
+            "scenario",
+            name,
+            "--event-day",
+            "3",
+            "-o",
+            out.to_str().unwrap(),
+        ]);
+        let err = String::from_utf8_lossy(&r.stderr);
+        assert_eq!(r.status.code(), Some(2), "{name}: {err}");
+        assert!(err.contains(says), "{name}: {err}");
+        assert!(!out.exists(), "{name}: a recording was written");
+    }
+}

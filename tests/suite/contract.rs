@@ -104,3 +104,34 @@ fn a_rejection_fits_its_schema_and_type() {
         "{e}"
     );
 }
+
+/// A queue report (sets dropped at a full queue) fits the rejection's schema, which
+/// describes its `dropped` count: a count that is not a positive integer does not fit.
+#[test]
+fn a_queue_report_fits_the_rejection_schema() {
+    let r = Rejected::dropped(
+        "lab-frame",
+        chrono::Utc::now(),
+        3,
+        7,
+        "queue full: 3 modal set(s) dropped unprocessed".into(),
+    );
+    let o = check("rejected", &Output::Rejected(Box::new(r)).to_wire());
+    let Output::Rejected(r) = o else {
+        panic!("not a rejection")
+    };
+    assert_eq!(r.dropped, Some(3));
+    let (_, text) = for_topic("rejected").unwrap();
+    let mut instance: Value = serde_json::from_slice(&Output::Rejected(r).to_wire()).unwrap();
+    for bad in [
+        serde_json::json!("3"),
+        serde_json::json!(0),
+        serde_json::json!(1.5),
+    ] {
+        instance["dropped"] = bad.clone();
+        assert!(
+            !super::common::schema_errors(text, &instance).is_empty(),
+            "dropped = {bad} fits the schema"
+        );
+    }
+}

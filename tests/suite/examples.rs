@@ -326,8 +326,9 @@ fn every_shell_example_in_the_readme_and_the_guide_runs() {
         skipped += s;
     }
     eprintln!("{ran} examples run, {skipped} marked not run");
+    // Every page: a floor on the count, so a harness that stops reading a layout fails.
     assert!(
-        ran >= 40,
+        ran >= if only.is_empty() { 40 } else { 1 },
         "only {ran} examples found: is the page layout still read?"
     );
 }

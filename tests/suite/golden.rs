@@ -1,4 +1,4 @@
-//! The wire bytes do not move (issue 22): every bundled recording replayed, and the JSON of
+//! The wire bytes do not move: every bundled recording replayed, and the JSON of
 //! `simulate`, `modes`, `update` (mode matching, Bayesian, two-stage), `sweep-sigma` and
 //! `diagnose`, each reduced to a SHA-256 digest and compared with `tests/golden/digests.txt`.
 //!
@@ -110,7 +110,7 @@ fn p(path: &Path) -> &str {
 fn digests() -> BTreeMap<String, String> {
     let d = dir();
     let mut out = BTreeMap::new();
-    for rec in ["healthy", "loosening", "sudden", "mass"] {
+    for rec in ["healthy", "loosening", "sudden", "mass", "seasonal"] {
         let o = d.join(format!("{rec}.out.mcap"));
         boltwatch(&[
             "replay",

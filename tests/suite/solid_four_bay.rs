@@ -371,3 +371,21 @@ fn the_bayesian_map_stays_within_its_memory_estimate_on_the_four_bay_frame() {
     );
     assert!(estimate <= map, "the estimate is above the whole peak");
 }
+
+/// Which models hand their assembly's and ordering's scratch back to the system
+/// ([`boltwatch::release_scratch`]): the four-bay frame's hundreds of MB do, the space
+/// frame's and the lab frame's few MB (reused by the next model a diagnosis builds) do not.
+#[test]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow tier: cargo test --features slow-tests"
+)]
+fn only_large_models_release_their_scratch() {
+    let limit = boltwatch::RELEASE_SCRATCH_FROM_BYTES;
+    let big = four_bay().matrix_bytes();
+    assert!(big >= limit, "four-bay: {big} bytes");
+    for name in ["space-frame", "lab-frame"] {
+        let small = 2 * super::common::load_model(name).matrix_bytes();
+        assert!(small < limit / 4, "{name}: twice {small} bytes");
+    }
+}

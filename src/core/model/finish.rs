@@ -139,10 +139,7 @@ pub(super) fn finish_symmetric(
     let m = it.next().expect("M is always assembled");
     let others: Vec<&Csc> = k_params.iter().chain([&m]).collect();
     let union = UnionPattern::with_first(n, k0, &others); // K0 is the union's own matrix
-    // The assembly's scratch (twice the matrices on the four-bay frame) back to the
-    // system: the allocator would keep it for later allocations of like sizes only.
-    crate::release_free_memory();
-    Ok(Model {
+    let model = Model {
         name: name.to_string(),
         dof_labels: labels,
         k_params: Arc::new(k_params),
@@ -155,7 +152,12 @@ pub(super) fn finish_symmetric(
         locations: Vec::new(),
         reordered: Default::default(),
         bayesian,
-    })
+    };
+    // The assembly's scratch (twice the matrices on the four-bay frame) back to the
+    // system, when it is large: the allocator would keep it for later allocations of like
+    // sizes only.
+    crate::release_scratch(2 * model.matrix_bytes());
+    Ok(model)
 }
 
 /// The DOFs that carry no mass (a zero diagonal of `M`; lumped-mass models leave rotations

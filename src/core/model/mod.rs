@@ -290,9 +290,10 @@ impl Model {
             return Ok(r);
         }
         let r = std::sync::Arc::new(Reordered::new(&self.union)?);
-        // The ordering's and analysis' scratch (~0.1 GB on the four-bay frame) back to
-        // the system, not kept for allocations of other sizes.
-        crate::release_free_memory();
+        // The ordering's and analysis' scratch (~0.1 GB on the four-bay frame, about the
+        // matrices' size) back to the system when it is large, not kept for allocations
+        // of other sizes.
+        crate::release_scratch(self.matrix_bytes());
         Ok(self.reordered.get_or_init(|| r))
     }
 

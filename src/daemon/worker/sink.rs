@@ -14,10 +14,9 @@
 
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::sync::mpsc::{self, Receiver, SyncSender};
-use std::thread::JoinHandle;
+use std::sync::mpsc::{self, Receiver};
 
-use anyhow::{Context, Result, anyhow, bail};
+use anyhow::Result;
 use zenoh::Wait;
 use zenoh::qos::CongestionControl;
 use zenoh::sample::Locality;
@@ -26,6 +25,7 @@ use crate::contract::Output;
 use crate::daemon::log::RollingLog;
 use crate::daemon::metrics::Shared;
 use crate::io::driver::{JobKind, Sink};
+use crate::io::job_thread::JobThread;
 use crate::io::mcap::{to_ns, topic};
 
 /// Jobs waiting for the writer at most; then the tracking thread waits (as it did for a
@@ -51,24 +51,21 @@ enum Job {
 /// thread), the status.
 pub struct LiveSink {
     pub shared: Arc<Shared>,
-    jobs: Option<SyncSender<Job>>,
-    thread: Option<JoinHandle<Result<RollingLog>>>,
+    writer: JobThread<Job, RollingLog>,
 }
 
 impl LiveSink {
     /// Starts the writer thread on `log`, publishing on `session`.
     pub fn start(session: zenoh::Session, log: RollingLog, shared: Arc<Shared>) -> Result<Self> {
-        let (tx, rx) = mpsc::sync_channel::<Job>(WRITER_QUEUE);
         let on_thread = shared.clone();
-        let thread = std::thread::Builder::new()
-            .name(format!("write-{}", shared.structure))
-            .spawn(move || write_loop(rx, log, &session, &on_thread))
-            .context("cannot start the log writer thread")?;
-        Ok(Self {
-            shared,
-            jobs: Some(tx),
-            thread: Some(thread),
-        })
+        let writer = JobThread::start(
+            format!("write-{}", shared.structure),
+            "the log writer",
+            "writing the log",
+            WRITER_QUEUE,
+            move |jobs| write_loop(jobs, log, &session, &on_thread),
+        )?;
+        Ok(Self { shared, writer })
     }
 
     /// Runs `f` on the log, on the writer thread after every output handed over before,
@@ -78,47 +75,19 @@ impl LiveSink {
         f: impl FnOnce(&mut RollingLog) -> Result<R> + Send + 'static,
     ) -> Result<R> {
         let (tx, rx) = mpsc::channel();
-        self.send(Job::Call(Box::new(move |log| {
+        self.writer.send(Job::Call(Box::new(move |log| {
             let _ = tx.send(f(log));
         })))?;
         match rx.recv() {
             Ok(r) => r,
-            Err(_) => Err(self.failure()),
+            Err(_) => Err(self.writer.failure()),
         }
     }
 
     /// Waits for everything handed over, then finishes the log's open file; the files this
     /// log closed.
-    pub fn close(mut self) -> Result<Vec<PathBuf>> {
-        self.jobs.take();
-        let log = match self.thread.take().map(JoinHandle::join) {
-            Some(Ok(r)) => r?,
-            Some(Err(_)) => bail!("the log writer thread panicked"),
-            None => bail!("the log writer has stopped"),
-        };
-        log.close()
-    }
-
-    fn send(&mut self, job: Job) -> Result<()> {
-        let jobs = self
-            .jobs
-            .as_ref()
-            .ok_or_else(|| anyhow!("the log writer has stopped"))?;
-        match jobs.send(job) {
-            Ok(()) => Ok(()),
-            Err(_) => Err(self.failure()),
-        }
-    }
-
-    /// The error that stopped the writer thread.
-    fn failure(&mut self) -> anyhow::Error {
-        self.jobs.take();
-        match self.thread.take().map(JoinHandle::join) {
-            Some(Ok(Err(e))) => e.context("writing the log"),
-            Some(Ok(Ok(_))) => anyhow!("the log writer stopped"),
-            Some(Err(_)) => anyhow!("the log writer thread panicked"),
-            None => anyhow!("the log writer has stopped"),
-        }
+    pub fn close(self) -> Result<Vec<PathBuf>> {
+        self.writer.finish()?.close()
     }
 }
 
@@ -196,7 +165,7 @@ impl LiveSink {
             bytes,
             modal: matches!(output, Output::Modal(_)),
         };
-        self.send(job)?;
+        self.writer.send(job)?;
         self.shared.with_status(|st| st.note(output));
         Ok(())
     }

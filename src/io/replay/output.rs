@@ -16,6 +16,7 @@ use super::{Recording, ReplayOptions, ReplaySummary, Start, with_suffix};
 use crate::contract::{Checkpoint, Output};
 use crate::io::checkpoint;
 use crate::io::driver::{Sink, StructureModel};
+use crate::io::job_thread::JobThread;
 use crate::io::mcap::{ChannelSpec, McapWriter, read_all, read_tolerant, to_ns, topic};
 use crate::io::model::adopt_law;
 use crate::pipeline::{Tracker, TrackerState};
@@ -60,7 +61,7 @@ impl OutputFile {
     pub(super) fn start(w: McapWriter, syncs: Vec<u64>, summary: ReplaySummary) -> Result<Self> {
         Ok(Self {
             written: w.written(),
-            writer: Writer::start(w)?,
+            writer: start_writer(w)?,
             syncs,
             summary,
         })
@@ -128,77 +129,37 @@ enum WriterJob {
 const WRITER_QUEUE: usize = 256;
 
 /// The thread that owns the output [`McapWriter`].
-struct Writer {
-    jobs: Option<mpsc::SyncSender<WriterJob>>,
-    thread: Option<std::thread::JoinHandle<Result<McapWriter>>>,
-}
+type Writer = JobThread<WriterJob, McapWriter>;
 
-impl Writer {
-    fn start(mut w: McapWriter) -> Result<Self> {
-        let (tx, rx) = mpsc::sync_channel::<WriterJob>(WRITER_QUEUE);
-        let thread = std::thread::Builder::new()
-            .name("replay-writer".into())
-            .spawn(move || -> Result<McapWriter> {
-                for job in rx {
-                    match job {
-                        WriterJob::Output(o) => w.write(
-                            &topic(o.structure(), o.topic()),
-                            to_ns(o.time())?,
-                            &o.to_wire(),
-                        )?,
-                        WriterJob::Encoded { topic, time, bytes } => {
-                            w.write(&topic, time, &bytes)?
-                        }
-                        WriterJob::Sync(reply) => {
-                            let r = w.sync();
-                            let failed = r.is_err();
-                            let _ = reply.send(r);
-                            if failed {
-                                bail!("the output file could not be synced");
-                            }
+/// Starts the [`Writer`] thread on `w`.
+fn start_writer(mut w: McapWriter) -> Result<Writer> {
+    JobThread::start(
+        "replay-writer".into(),
+        "the output writer",
+        "writing the output file",
+        WRITER_QUEUE,
+        move |jobs| {
+            for job in jobs {
+                match job {
+                    WriterJob::Output(o) => w.write(
+                        &topic(o.structure(), o.topic()),
+                        to_ns(o.time())?,
+                        &o.to_wire(),
+                    )?,
+                    WriterJob::Encoded { topic, time, bytes } => w.write(&topic, time, &bytes)?,
+                    WriterJob::Sync(reply) => {
+                        let r = w.sync();
+                        let failed = r.is_err();
+                        let _ = reply.send(r);
+                        if failed {
+                            bail!("the output file could not be synced");
                         }
                     }
                 }
-                Ok(w)
-            })
-            .context("cannot start the output writer thread")?;
-        Ok(Self {
-            jobs: Some(tx),
-            thread: Some(thread),
-        })
-    }
-
-    fn send(&mut self, job: WriterJob) -> Result<()> {
-        let jobs = self
-            .jobs
-            .as_ref()
-            .ok_or_else(|| anyhow!("the output writer has stopped"))?;
-        match jobs.send(job) {
-            Ok(()) => Ok(()),
-            Err(_) => Err(self.failure()),
-        }
-    }
-
-    /// The error that stopped the writer thread.
-    fn failure(&mut self) -> anyhow::Error {
-        self.jobs.take();
-        match self.thread.take().map(|t| t.join()) {
-            Some(Ok(Err(e))) => e.context("writing the output file"),
-            Some(Ok(Ok(_))) => anyhow!("the output writer stopped"),
-            Some(Err(_)) => anyhow!("the output writer thread panicked"),
-            None => anyhow!("the output writer has stopped"),
-        }
-    }
-
-    /// Waits for everything handed over and returns the file's writer.
-    fn finish(mut self) -> Result<McapWriter> {
-        self.jobs.take();
-        match self.thread.take().map(|t| t.join()) {
-            Some(Ok(r)) => r.context("writing the output file"),
-            Some(Err(_)) => bail!("the output writer thread panicked"),
-            None => bail!("the output writer has stopped"),
-        }
-    }
+            }
+            Ok(w)
+        },
+    )
 }
 
 /// The replay's checkpoint file: where to go on from, and every tracker's checkpoint.
