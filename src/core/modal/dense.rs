@@ -33,11 +33,11 @@ use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
 use faer::linalg::solvers::{Llt, Solve};
 use faer::sparse::SparseColMatRef;
 use faer::sparse::linalg::cholesky::{SymbolicCholesky, SymbolicCholeskyRaw};
-use faer::sparse::linalg::solvers::{Llt as SparseLlt, SymbolicLlt};
-use faer::{Mat, MatMut, Par, Side};
+use faer::{Mat, Par, Side};
 
 use super::ModalError;
 use super::eigen::*;
+use super::rows::WarmFactor;
 use super::tridiag::PartialSymEvd;
 use crate::core::model::Model;
 
@@ -59,7 +59,7 @@ pub struct DenseEigen {
     /// Sparse `K(θ)` on the model's union pattern and its symbolic Cholesky factorization
     /// (warm solves: a few nonzeros per row make the solves several times cheaper).
     k_values: Vec<f64>,
-    k_symbolic: SymbolicLlt<usize>,
+    k_factor: WarmFactor,
     ldlt_mem: MemBuffer,
 }
 
@@ -84,8 +84,7 @@ impl DenseEigen {
             sturm_values: vec![0.0; model.union_pattern().pattern.val().len()],
             shifted: Mat::zeros(n, n),
             k_values: vec![0.0; model.union_pattern().pattern.val().len()],
-            k_symbolic: SymbolicLlt::try_new(model.union_pattern().pattern.symbolic(), Side::Lower)
-                .map_err(|e| ModalError::Factorization(format!("{e:?}")))?,
+            k_factor: WarmFactor::new(model)?,
             ldlt_mem: MemBuffer::new(ldlt_factor::cholesky_in_place_scratch::<f64>(
                 n,
                 Par::Seq,
@@ -123,8 +122,13 @@ impl EigenSolver for DenseEigen {
         l.transpose().solve_upper_triangular_in_place(phi0.as_mut());
 
         let mphi0 = model.mass() * &phi0;
-        let mut solve = |b: MatMut<'_, f64>| llt.solve_in_place(b);
-        let RitzStep { lambda, phi: x, .. } = inverse_iteration_step(&mut solve, model, mphi0, 0)?;
+        let mut solve = |b: &Mat<f64>| {
+            let mut x = b.clone();
+            llt.solve_in_place(x.as_mut());
+            let mx = model.mass() * &x;
+            (x, mx)
+        };
+        let RitzStep { lambda, phi: x, .. } = inverse_iteration_step(&mut solve, mphi0, 0)?;
         check_positive(&lambda[..n_modes])?;
         let block = WarmBlock {
             theta: theta.to_vec(),
@@ -175,17 +179,18 @@ impl EigenSolver for DenseEigen {
             return Ok(None);
         };
         check_mode_count(n_modes, model.n_finite_modes())?;
-        let Some(llt) = sparse_stiffness_llt(model, theta, &mut self.k_values, &self.k_symbolic)
-        else {
+        model.shifted_stiffness_values(theta, 0.0, &mut self.k_values);
+        if !self.k_factor.factorize(model, &self.k_values) {
             return Ok(None);
-        };
-        let mut solve = |b: MatMut<'_, f64>| llt.solve_in_place(b);
+        }
+        let factor = &self.k_factor;
+        let mut solve = |b: &Mat<f64>| factor.solve_and_mass(model, b);
         let strict = strict.min(n_modes);
         // The first solves only advance the subspace (K⁻¹M)ᵏ span Φ, kept M-orthonormal;
         // the Rayleigh–Ritz steps that follow extract its best pairs from the same subspace
         // (the span, hence the result, is that of a Rayleigh–Ritz at every step, at a
         // fraction of the cost).
-        let Some(mphi) = plain_steps(&mut solve, model, model.mass() * &block.x) else {
+        let Some(mphi) = plain_steps(&mut solve, model.mass() * &block.x) else {
             return Ok(None);
         };
         let mut residual = vec![f64::INFINITY; n_modes];
@@ -220,29 +225,15 @@ fn starts_warm(b: &WarmBlock, theta: &[f64], n_modes: usize) -> bool {
             .all(|(a, t)| (t / a).ln().abs() <= WARM_MAX_LOG_CHANGE)
 }
 
-/// `K(θ)` on the union pattern (into `k_values`) and its sparse Cholesky factor on the
-/// symbolic factorization `k_symbolic`; `None` if `K(θ)` is not positive definite.
-fn sparse_stiffness_llt(
-    model: &Model,
-    theta: &[f64],
-    k_values: &mut [f64],
-    k_symbolic: &SymbolicLlt<usize>,
-) -> Option<SparseLlt<usize, f64>> {
-    model.shifted_stiffness_values(theta, 0.0, k_values);
-    let k_sparse = SparseColMatRef::new(model.union_pattern().pattern.symbolic(), k_values);
-    SparseLlt::try_new_with_symbolic(k_symbolic.clone(), k_sparse, Side::Lower).ok()
-}
+/// `B ↦ (K⁻¹ B, M K⁻¹ B)`: what each step of a solve applies to its block.
+type SolveMass<'a> = dyn FnMut(&Mat<f64>) -> (Mat<f64>, Mat<f64>) + 'a;
 
 /// The plain steps of a warm solve: `WARM_PLAIN_STEPS` block inverse iterations from
 /// `M Φ` (`mphi`), each made M-orthonormal; `M X` of the last, or `None` if the block lost
 /// its rank.
-fn plain_steps(
-    solve: &mut dyn FnMut(MatMut<'_, f64>),
-    model: &Model,
-    mut mphi: Mat<f64>,
-) -> Option<Mat<f64>> {
+fn plain_steps(solve: &mut SolveMass<'_>, mut mphi: Mat<f64>) -> Option<Mat<f64>> {
     for _ in 0..WARM_PLAIN_STEPS {
-        mphi = orthonormal_inverse_iteration(solve, model, mphi)?;
+        mphi = orthonormal_inverse_iteration(solve, mphi)?;
     }
     Some(mphi)
 }
@@ -252,7 +243,7 @@ fn plain_steps(
 /// `strict` modes are below [`STRICT_RESIDUAL`] and of all below [`LOOSE_RESIDUAL`]: that
 /// step, or `None` if no step got there.
 fn ritz_steps(
-    solve: &mut dyn FnMut(MatMut<'_, f64>),
+    solve: &mut SolveMass<'_>,
     model: &Model,
     mut mphi: Mat<f64>,
     n_modes: usize,
@@ -261,7 +252,7 @@ fn ritz_steps(
 ) -> Result<Option<RitzStep>, ModalError> {
     let n = model.n_dof();
     for _ in WARM_PLAIN_STEPS..WARM_MAX_STEPS {
-        let step = inverse_iteration_step(solve, model, mphi, n_modes)?;
+        let step = inverse_iteration_step(solve, mphi, n_modes)?;
         relative_residuals(&step.k_phi, &step.m_phi, &step.lambda, n, residual);
         if residual[..strict].iter().all(|&r| r <= STRICT_RESIDUAL)
             && residual.iter().all(|&r| r <= LOOSE_RESIDUAL)
@@ -374,12 +365,8 @@ impl DenseEigen {
 /// One block inverse iteration `X = K⁻¹ M Φ0`, made M-orthonormal (columns scaled to unit
 /// M-norm, then Cholesky QR in the M inner product): `M X`, all the next step needs.
 /// `None` if the Gram matrix is not positive definite (the block lost its rank).
-fn orthonormal_inverse_iteration(
-    solve: &mut dyn FnMut(MatMut<'_, f64>),
-    model: &Model,
-    mphi0: Mat<f64>,
-) -> Option<Mat<f64>> {
-    let (x, _, mut mx) = solve_m_normalized(solve, model, mphi0);
+fn orthonormal_inverse_iteration(solve: &mut SolveMass<'_>, mphi0: Mat<f64>) -> Option<Mat<f64>> {
+    let (x, _, mut mx) = solve_m_normalized(solve, mphi0);
     let mut g = x.transpose() * &mx;
     symmetrize(&mut g);
     let l = g.llt(Side::Lower).ok()?;
@@ -390,17 +377,14 @@ fn orthonormal_inverse_iteration(
 }
 
 /// `X = K⁻¹ M Φ0` with its columns scaled to unit M-norm, returned with `K X` (= `M Φ0`,
-/// scaled alike) and `M X`. `solve` applies `K⁻¹` in place; `mphi0` is `M Φ0`.
+/// scaled alike) and `M X`. `solve` applies `K⁻¹` and `M`; `mphi0` is `M Φ0`.
 fn solve_m_normalized(
-    solve: &mut dyn FnMut(MatMut<'_, f64>),
-    model: &Model,
+    solve: &mut SolveMass<'_>,
     mphi0: Mat<f64>,
 ) -> (Mat<f64>, Mat<f64>, Mat<f64>) {
     let (n, q) = (mphi0.nrows(), mphi0.ncols());
-    let mut x = mphi0.clone();
-    solve(x.as_mut());
+    let (mut x, mut mx) = solve(&mphi0);
     let mut kx = mphi0;
-    let mut mx = model.mass() * &x;
     for j in 0..q {
         let s = 1.0 / (x.col(j).transpose() * mx.col(j)).sqrt();
         for i in 0..n {
@@ -415,16 +399,15 @@ fn solve_m_normalized(
 /// One block inverse iteration `X = K⁻¹ M Φ0` (columns scaled to unit M-norm) and a
 /// Rayleigh–Ritz solve `(Xᵀ K X) a = λ (Xᵀ M X) a` on its span: all Ritz values ascending
 /// and the mass-normalized Ritz vectors `X a`, with `M X a` for all of them (the next
-/// step's `M Φ0`) and `K X a` for the first `n_k` (residuals). `solve` applies `K⁻¹` in
-/// place; `mphi0` is `M Φ0`. The products with M use its sparse form.
+/// step's `M Φ0`) and `K X a` for the first `n_k` (residuals). `solve` applies `K⁻¹`
+/// and `M`; `mphi0` is `M Φ0`. The products with M use its sparse form.
 fn inverse_iteration_step(
-    solve: &mut dyn FnMut(MatMut<'_, f64>),
-    model: &Model,
+    solve: &mut SolveMass<'_>,
     mphi0: Mat<f64>,
     n_k: usize,
 ) -> Result<RitzStep, ModalError> {
     let q = mphi0.ncols();
-    let (x, kx, mx) = solve_m_normalized(solve, model, mphi0);
+    let (x, kx, mx) = solve_m_normalized(solve, mphi0);
     let mut kr = x.transpose() * &kx;
     let mut mr = x.transpose() * &mx;
     symmetrize(&mut kr);

@@ -6,6 +6,7 @@ pub mod dense;
 pub mod eigen;
 pub mod krylov;
 pub mod mac;
+mod rows;
 pub mod sensitivity;
 pub mod tridiag;
 
