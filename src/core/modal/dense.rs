@@ -39,6 +39,7 @@ use super::ModalError;
 use super::eigen::*;
 use super::rows::WarmFactor;
 use super::tridiag::PartialSymEvd;
+use super::up_looking::{Kind, UpLooking};
 use crate::core::model::Model;
 
 /// Dense solver (for models up to a few thousand DOFs).
@@ -52,6 +53,7 @@ pub struct DenseEigen {
     /// `K − σM` of the Sturm count: the sparse `LDLᵀ` (symbolic once, AMD ordering), or
     /// in place in a dense matrix when that symbolic factorization is supernodal.
     sturm_symbolic: SymbolicCholesky<usize>,
+    sturm_up_looking: Option<UpLooking>,
     sturm_values: Vec<f64>,
     sturm_l: Vec<f64>,
     sturm_mem: MemBuffer,
@@ -79,6 +81,11 @@ impl DenseEigen {
             sturm_l: vec![0.0; sturm_symbolic.len_val()],
             sturm_mem: MemBuffer::new(
                 sturm_symbolic.factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Default::default()),
+            ),
+            sturm_up_looking: UpLooking::new(
+                &sturm_symbolic,
+                model.union_pattern().pattern.symbolic(),
+                Side::Lower,
             ),
             sturm_symbolic,
             sturm_values: vec![0.0; model.union_pattern().pattern.val().len()],
@@ -319,19 +326,27 @@ impl DenseEigen {
         if let SymbolicCholeskyRaw::Simplicial(simplicial) = self.sturm_symbolic.raw() {
             self.sturm_values.copy_from_slice(&self.k_values);
             model.subtract_mass_values(sigma, &mut self.sturm_values);
-            let a =
-                SparseColMatRef::new(model.union_pattern().pattern.symbolic(), &self.sturm_values);
-            self.sturm_symbolic
-                .factorize_numeric_ldlt(
-                    &mut self.sturm_l,
-                    a,
-                    Side::Lower,
-                    LdltRegularization::default(),
-                    Par::Seq,
-                    MemStack::new(&mut self.sturm_mem),
-                    Default::default(),
-                )
-                .ok()?;
+            let factorized = match &mut self.sturm_up_looking {
+                Some(up) => up.factorize(&self.sturm_values, Kind::Ldlt, &mut self.sturm_l),
+                None => self
+                    .sturm_symbolic
+                    .factorize_numeric_ldlt(
+                        &mut self.sturm_l,
+                        SparseColMatRef::new(
+                            model.union_pattern().pattern.symbolic(),
+                            &self.sturm_values,
+                        ),
+                        Side::Lower,
+                        LdltRegularization::default(),
+                        Par::Seq,
+                        MemStack::new(&mut self.sturm_mem),
+                        Default::default(),
+                    )
+                    .is_ok(),
+            };
+            if !factorized {
+                return None;
+            }
             let col_ptr = simplicial.col_ptr();
             let n = model.n_dof();
             return Some((0..n).filter(|&j| self.sturm_l[col_ptr[j]] < 0.0).count());

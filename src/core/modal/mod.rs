@@ -9,6 +9,7 @@ pub mod mac;
 mod rows;
 pub mod sensitivity;
 pub mod tridiag;
+mod up_looking;
 
 pub use dense::DenseEigen;
 pub use eigen::{EigenPairs, EigenSolver};

@@ -17,15 +17,18 @@ use faer::sparse::SparseColMatRef;
 use faer::sparse::linalg::cholesky::{
     LltRef, SymbolicCholesky, SymbolicCholeskyRaw, factorize_symbolic_cholesky,
 };
-use faer::{Conj, Mat, MatRef, Par, Side};
+use faer::{Conj, Mat, MatMut, MatRef, Par, Side};
 
 use super::ModalError;
+use super::up_looking::{Kind, UpLooking};
 use crate::core::model::Model;
 
 /// The sparse Cholesky factor of `K(θ)` on the model's union pattern (symbolic once, the
 /// ordering faer's `SymbolicLlt` chooses), applied with `M` to the warm solves' blocks.
 pub(crate) struct WarmFactor {
     symbolic: SymbolicCholesky<usize>,
+    /// Its numeric step with the symbolic work done once (`None`: supernodal).
+    up_looking: Option<UpLooking>,
     l: Vec<f64>,
     mem: MemBuffer,
 }
@@ -40,6 +43,11 @@ impl WarmFactor {
         )
         .map_err(|e| ModalError::Factorization(format!("{e:?}")))?;
         Ok(Self {
+            up_looking: UpLooking::new(
+                &symbolic,
+                model.union_pattern().pattern.symbolic(),
+                Side::Lower,
+            ),
             l: vec![0.0; symbolic.len_val()],
             mem: MemBuffer::new(
                 symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()),
@@ -51,6 +59,9 @@ impl WarmFactor {
     /// Factorizes `K(θ)` given by its union-pattern values; false if it is not positive
     /// definite.
     pub(crate) fn factorize(&mut self, model: &Model, k_values: &[f64]) -> bool {
+        if let Some(up) = &mut self.up_looking {
+            return up.factorize(k_values, Kind::Llt, &mut self.l);
+        }
         let k = SparseColMatRef::new(model.union_pattern().pattern.symbolic(), k_values);
         self.symbolic
             .factorize_numeric_llt(
@@ -91,6 +102,31 @@ impl WarmFactor {
         let (x, mx) = solve_and_mass_rows(y, l, inv, model.mass().as_ref());
         (x.to_mat(), mx.to_mat())
     }
+}
+
+/// `X ← L⁻ᵀ D⁻¹ L⁻¹ X` in place for the simplicial `LDLᵀ` factor `l` of an unpermuted
+/// matrix (Nelson's solves): faer's `SimplicialLdltRef` solve, row-wise.
+pub(crate) fn solve_ldlt_in_place(l: SparseColMatRef<'_, usize, f64>, x: MatMut<'_, f64>) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the processor has AVX2, checked just above.
+        return unsafe { solve_ldlt_avx2(l, x) };
+    }
+    solve_ldlt_steps(l, x)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn solve_ldlt_avx2(l: SparseColMatRef<'_, usize, f64>, x: MatMut<'_, f64>) {
+    solve_ldlt_steps(l, x)
+}
+
+#[inline(always)]
+fn solve_ldlt_steps(l: SparseColMatRef<'_, usize, f64>, x: MatMut<'_, f64>) {
+    let mut y = Rows::gather(x.as_ref(), None);
+    y.solve_unit_lower(l);
+    y.solve_scaled_lower_transpose(l);
+    y.scatter_into(x);
 }
 
 /// `X = Pᵀ L⁻ᵀ L⁻¹ Y` (rows `inv` of the solution) and `M X`, row-wise; with AVX2 where
@@ -226,6 +262,53 @@ impl Rows {
             let d = vals[0].recip();
             for (x, &a) in self.data[j * q..(j + 1) * q].iter_mut().zip(&acc) {
                 *x = (*x - a) * d;
+            }
+        }
+    }
+
+    /// `X ← L⁻¹ X` for the unit lower-triangular `l` of an `LDLᵀ` (the diagonal, first in
+    /// each column, holds `D` and is not used).
+    #[inline(always)]
+    fn solve_unit_lower(&mut self, l: SparseColMatRef<'_, usize, f64>) {
+        for j in 0..l.ncols() {
+            let (rows, vals) = (l.row_idx_of_col_raw(j), l.val_of_col(j));
+            for (&i, &lij) in rows.iter().zip(vals).skip(1) {
+                let (xj, xi) = self.pair_mut(j, i);
+                for (yi, &yj) in xi.iter_mut().zip(xj) {
+                    *yi -= lij * yj;
+                }
+            }
+        }
+    }
+
+    /// `X ← L⁻ᵀ D⁻¹ X` for the `LDLᵀ` factor `l` (`D` on its diagonal, first in each
+    /// column): `x_j ← x_j · (1/d_j) − Σ l_ij x_i`.
+    #[inline(always)]
+    fn solve_scaled_lower_transpose(&mut self, l: SparseColMatRef<'_, usize, f64>) {
+        let q = self.q;
+        let mut acc = vec![0.0; q];
+        for j in (0..l.ncols()).rev() {
+            let (rows, vals) = (l.row_idx_of_col_raw(j), l.val_of_col(j));
+            acc.fill(0.0);
+            for (&i, &lij) in rows[1..].iter().zip(&vals[1..]).rev() {
+                for (a, &xi) in acc.iter_mut().zip(self.row(i)) {
+                    *a += lij * xi;
+                }
+            }
+            let d = vals[0].recip();
+            for (x, &a) in self.data[j * q..(j + 1) * q].iter_mut().zip(&acc) {
+                *x = *x * d - a;
+            }
+        }
+    }
+
+    /// Writes these rows into `a` (as many rows and columns).
+    fn scatter_into(&self, mut a: MatMut<'_, f64>) {
+        let q = self.q;
+        for c in 0..q {
+            let mut col = a.as_mut().col_mut(c);
+            for i in 0..col.nrows() {
+                col[i] = self.data[i * q + c];
             }
         }
     }

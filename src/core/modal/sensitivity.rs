@@ -24,11 +24,13 @@ use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
 use faer::linalg::solvers::Solve;
 use faer::sparse::SparseColMatRef;
+use faer::sparse::linalg::cholesky::{LdltRef, SymbolicCholeskyRaw};
 use faer::sparse::linalg::solvers::{Lu, SymbolicLu};
 use faer::{Conj, Mat, MatMut, Par, Side};
 
 use std::sync::{Arc, PoisonError, RwLock};
 
+use super::up_looking::{Kind, UpLooking};
 use super::{ModalError, col_slice, col_slice_mut};
 use crate::core::model::sparse::spmv_add;
 use crate::core::model::{Model, Reordered};
@@ -72,6 +74,8 @@ pub struct Nelson {
     /// analysis holds ~60 MB at its peak on the four-bay solid frame, and the fallback is
     /// rare.
     symbolic: Option<SymbolicLu<usize>>,
+    /// The `LDLᵀ`'s numeric step with its symbolic work done once (`None`: supernodal).
+    up_looking: Option<UpLooking>,
     l_values: Vec<f64>,
     mem: MemBuffer,
     /// The pinned `K(θ) − λM`, lower triangle in the reordered numbering
@@ -129,6 +133,7 @@ impl Nelson {
             .unzip();
         Ok(Self {
             symbolic: None,
+            up_looking: UpLooking::new(cholesky, order.lower.as_ref(), Side::Lower),
             l_values: vec![0.0; cholesky.len_val()],
             mem,
             values: vec![0.0; order.len()],
@@ -266,31 +271,43 @@ impl Nelson {
         let a = SparseColMatRef::new(order.lower.as_ref(), &self.values);
         let [f, r, s] = &mut self.work;
         self.rhs.copy_from(&self.f);
-        match order.symbolic.factorize_numeric_ldlt(
-            &mut self.l_values,
-            a,
-            Side::Lower,
-            LdltRegularization::default(),
-            Par::Seq,
-            MemStack::new(&mut self.mem),
-            Default::default(),
-        ) {
-            Ok(ldlt) => {
-                ldlt.solve_in_place_with_conj(
-                    Conj::No,
-                    self.rhs.as_mut(),
+        let factorized = match &mut self.up_looking {
+            Some(up) => up.factorize(&self.values, Kind::Ldlt, &mut self.l_values),
+            None => order
+                .symbolic
+                .factorize_numeric_ldlt(
+                    &mut self.l_values,
+                    a,
+                    Side::Lower,
+                    LdltRegularization::default(),
                     Par::Seq,
                     MemStack::new(&mut self.mem),
-                );
-                backward_error(
-                    a,
-                    self.rhs.as_ref(),
-                    self.f.as_ref(),
-                    [f.as_mut_slice(), r.as_mut_slice(), s.as_mut_slice()],
-                ) <= BACKWARD_TOL
-            }
-            Err(_) => false,
+                    Default::default(),
+                )
+                .is_ok(),
+        };
+        if !factorized {
+            return false;
         }
+        match (order.symbolic.raw(), order.symbolic.perm()) {
+            // Row-wise, the same bits as faer's solve (`super::rows`).
+            (SymbolicCholeskyRaw::Simplicial(simplicial), None) => {
+                let l = SparseColMatRef::new(simplicial.factor(), &self.l_values);
+                super::rows::solve_ldlt_in_place(l, self.rhs.as_mut());
+            }
+            _ => LdltRef::new(&order.symbolic, &self.l_values).solve_in_place_with_conj(
+                Conj::No,
+                self.rhs.as_mut(),
+                Par::Seq,
+                MemStack::new(&mut self.mem),
+            ),
+        }
+        backward_error(
+            a,
+            self.rhs.as_ref(),
+            self.f.as_ref(),
+            [f.as_mut_slice(), r.as_mut_slice(), s.as_mut_slice()],
+        ) <= BACKWARD_TOL
     }
 
     /// The fallback: `(K − λM) v_l = f_l` with component `k` pinned, by a sparse LU with
