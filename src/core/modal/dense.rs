@@ -25,7 +25,10 @@
 //! modes in use are below [`STRICT_RESIDUAL`] and of the others below [`LOOSE_RESIDUAL`]),
 //! then a Sturm count (inertia of `K − σM`) proving no mode slipped past the block. Any
 //! failure falls back to the cold solve. Lab frame: 0.33 ms against 1.12 ms cold
-//! (`cargo bench --bench update`, `lab_frame_evaluate_warm` / `lab_frame_evaluate`).
+//! (`cargo bench --bench update`, `lab_frame_evaluate_warm` / `lab_frame_evaluate`). The
+//! factor's numeric step keeps its symbolic work ([`super::up_looking`]), and `K⁻¹` and
+//! `M` are applied to the block row by row ([`super::rows`]): faer's arithmetic, the same
+//! bits.
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::ldlt::factor as ldlt_factor;

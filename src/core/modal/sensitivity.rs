@@ -18,7 +18,10 @@
 //! `BACKWARD_TOL` (a tiny pivot grew the factors)
 //! the system is solved again by a sparse LU with partial pivoting. Both symbolic
 //! factorizations depend only on the pattern: the `LDLᵀ`'s is the model's, computed once;
-//! the LU's is computed by a workspace when it first falls back.
+//! the LU's is computed by a workspace when it first falls back. On a simplicial pattern
+//! (small models) the `LDLᵀ`'s numeric step keeps its symbolic work
+//! ([`super::up_looking`]) and its solves run row by row ([`super::rows`]), with faer's
+//! arithmetic either way.
 
 use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::linalg::cholesky::ldlt::factor::LdltRegularization;

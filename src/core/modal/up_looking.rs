@@ -103,8 +103,9 @@ impl UpLooking {
                 if kind == Kind::Llt {
                     xj = lkj;
                 }
-                for p in j_start + 1..row {
-                    self.x[self.l_row[p]] -= l[p] * xj;
+                let column = j_start + 1..row;
+                for (&i, &lij) in self.l_row[column.clone()].iter().zip(&l[column]) {
+                    self.x[i] -= lij * xj;
                 }
                 d -= lkj * xj;
                 l[row] = lkj;
