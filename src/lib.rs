@@ -50,8 +50,9 @@ pub const RELEASE_SCRATCH_FROM_BYTES: u64 = 16 << 20;
 /// at least [`RELEASE_SCRATCH_FROM_BYTES`]: the four-bay solid frame's assembly and
 /// ordering free hundreds of MB that later allocations of other sizes would not reuse;
 /// a small model's free a few MB, which the next model reuses. Releasing those too made
-/// `diagnose` on the space frame (some thousand model builds) fault every page back in:
-/// 2.1 million minor page faults and 15 s of its 120 s of CPU in the kernel.
+/// `diagnose` on the space frame (a model built for every candidate and profile point)
+/// fault every page back in: 2.1 million minor page faults and 15 s of its 120 s of CPU
+/// in the kernel.
 pub fn release_scratch(scratch: u64) {
     if scratch >= RELEASE_SCRATCH_FROM_BYTES {
         release_free_memory();
