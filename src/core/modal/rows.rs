@@ -342,7 +342,7 @@ mod tests {
     /// A block of 27 vectors (q not a multiple of 4, as faer's column groups are) on the
     /// lab frame's `K` and `M`: the row-wise solve and product equal faer's bit for bit.
     #[test]
-    fn row_wise_solves_and_products_are_fares_bit_for_bit() {
+    fn row_wise_solves_and_products_are_faers_bit_for_bit() {
         let model = crate::core::model::lab_frame();
         let theta = model.nominal_theta();
         let pattern = model.union_pattern().pattern.symbolic();

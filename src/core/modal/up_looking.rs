@@ -209,7 +209,7 @@ mod tests {
     /// the factors equal faer's bit for bit, and a matrix that is not positive definite
     /// fails the `LLᵀ` as faer's does; the row-wise `LDLᵀ` solve equals faer's.
     #[test]
-    fn factors_are_fares_bit_for_bit() {
+    fn factors_are_faers_bit_for_bit() {
         let model = crate::core::model::lab_frame();
         let theta = model.nominal_theta();
         let pattern = model.union_pattern().pattern.symbolic();
