@@ -14,17 +14,16 @@
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::sparse::SparseColMatRef;
-use faer::sparse::linalg::cholesky::{
-    LltRef, SymbolicCholesky, SymbolicCholeskyRaw, factorize_symbolic_cholesky,
-};
+use faer::sparse::linalg::cholesky::{LltRef, SymbolicCholesky, SymbolicCholeskyRaw};
 use faer::{Conj, Mat, MatMut, MatRef, Par, Side};
 
 use super::ModalError;
 use super::up_looking::{Kind, UpLooking};
 use crate::core::model::Model;
 
-/// The sparse Cholesky factor of `K(θ)` on the model's union pattern (symbolic once, the
-/// ordering faer's `SymbolicLlt` chooses), applied with `M` to the warm solves' blocks.
+/// The sparse Cholesky factor of `K(θ)` on the model's union pattern (symbolic once,
+/// [`super::union_symbolic_cholesky`]: AMD, the ordering faer's `SymbolicLlt` chooses by
+/// default), applied with `M` to the warm solves' blocks.
 pub(crate) struct WarmFactor {
     symbolic: SymbolicCholesky<usize>,
     /// Its numeric step with the symbolic work done once (`None`: supernodal).
@@ -35,13 +34,7 @@ pub(crate) struct WarmFactor {
 
 impl WarmFactor {
     pub(crate) fn new(model: &Model) -> Result<Self, ModalError> {
-        let symbolic = factorize_symbolic_cholesky(
-            model.union_pattern().pattern.symbolic(),
-            Side::Lower,
-            Default::default(),
-            Default::default(),
-        )
-        .map_err(|e| ModalError::Factorization(format!("{e:?}")))?;
+        let symbolic = super::union_symbolic_cholesky(model)?;
         Ok(Self {
             up_looking: UpLooking::new(
                 &symbolic,
@@ -336,7 +329,7 @@ mod tests {
     use faer::Side;
     use faer::dyn_stack::{MemBuffer, MemStack};
     use faer::linalg::solvers::Solve;
-    use faer::sparse::linalg::cholesky::{SymbolicCholeskyRaw, factorize_symbolic_cholesky};
+    use faer::sparse::linalg::cholesky::SymbolicCholeskyRaw;
     use faer::sparse::linalg::solvers::{Llt, SymbolicLlt};
 
     /// A block of 27 vectors (q not a multiple of 4, as faer's column groups are) on the
@@ -359,13 +352,7 @@ mod tests {
         let mut expected = b.clone();
         llt.solve_in_place(expected.as_mut());
 
-        let chol = factorize_symbolic_cholesky(
-            pattern,
-            Side::Lower,
-            Default::default(),
-            Default::default(),
-        )
-        .unwrap();
+        let chol = super::super::union_symbolic_cholesky(&model).unwrap();
         let mut l_values = vec![0.0; chol.len_val()];
         let mut mem = MemBuffer::new(
             chol.factorize_numeric_llt_scratch::<f64>(faer::Par::Seq, Default::default()),
