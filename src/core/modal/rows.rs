@@ -178,8 +178,10 @@ impl Rows {
         let mut data = vec![0.0; n * q];
         for c in 0..q {
             let col = a.col(c);
-            for i in 0..n {
-                data[i * q + c] = col[order.map_or(i, |o| o[i])];
+            let rows = data.chunks_exact_mut(q).map(|row| &mut row[c]);
+            match order {
+                Some(o) => rows.zip(o).for_each(|(v, &i)| *v = col[i]),
+                None => rows.zip(col.iter()).for_each(|(v, x)| *v = *x),
             }
         }
         Self { q, data }
