@@ -181,18 +181,31 @@ pub struct ValidationContext<'a> {
 /// `null` is accepted only as a shape entry: an optional field is either present with a
 /// value or absent.
 pub fn parse_modal_set(payload: &[u8], ctx: &ValidationContext) -> Result<ModalSet, Rejection> {
-    let obj = json_object(payload)?;
-    check_schema(&obj)?;
-    no_unknown_fields(&obj, TOP_FIELDS, "")?;
-    let structure = watched_structure(&obj, ctx)?;
-    let time = parse_time(&obj, ctx)?;
-    let channels = parse_channels(&obj, ctx.model_channels)?;
-    let modes = parse_modes(&obj, channels.len())?;
+    validate_modal_set(&modal_set_object(payload)?, ctx)
+}
+
+/// The first step of [`parse_modal_set`], which depends on the payload alone: its JSON
+/// object (UTF-8, JSON with the non-finite spellings rewritten, an object at the top).
+pub fn modal_set_object(payload: &[u8]) -> Result<Map<String, Value>, Rejection> {
+    json_object(payload)
+}
+
+/// The rest of [`parse_modal_set`]: the object of [`modal_set_object`] validated in `ctx`.
+pub fn validate_modal_set(
+    obj: &Map<String, Value>,
+    ctx: &ValidationContext,
+) -> Result<ModalSet, Rejection> {
+    check_schema(obj)?;
+    no_unknown_fields(obj, TOP_FIELDS, "")?;
+    let structure = watched_structure(obj, ctx)?;
+    let time = parse_time(obj, ctx)?;
+    let channels = parse_channels(obj, ctx.model_channels)?;
+    let modes = parse_modes(obj, channels.len())?;
     let super::environment::Conditions {
         temperature_c,
         covariates,
-    } = super::environment::Conditions::parse(&obj)?;
-    let source = parse_source(&obj)?;
+    } = super::environment::Conditions::parse(obj)?;
+    let source = parse_source(obj)?;
     let labels = unique_labels(&modes)?;
     let missing = parse_missing(obj.get("missing"), &labels)?;
     let unexplained_peaks = parse_peaks(obj.get("unexplained_peaks"))?;

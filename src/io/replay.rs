@@ -32,7 +32,7 @@ use super::model::{adopt_law, load_structure};
 use crate::contract::modal_set::{ModalSet, Rejection};
 use crate::contract::{Alert, Estimate, Output};
 use crate::pipeline::accel::{AccelFront, FrontEvent, IdentifySettings};
-use crate::pipeline::{Action, Tracker, TrackerState};
+use crate::pipeline::{Action, Prepared, Tracker, TrackerState};
 use crate::settings::Settings;
 
 mod output;
@@ -470,7 +470,8 @@ impl Run {
 
 /// Feeds the inputs from `next` on, in log-time order, through the shared driver
 /// ([`dispatch`]); where a tracker asks for a checkpoint, waits for the off-path lane and
-/// checkpoints the run. `progress(done, total)` after every input.
+/// checkpoints the run. `progress(done, total)` after every input. A reader thread makes
+/// each recorded payload's digest and JSON ([`Prepared`]) a few inputs ahead.
 fn feed(
     run: &mut Run,
     inputs: &[(String, Input)],
@@ -478,35 +479,64 @@ fn feed(
     checkpoints: &Checkpoints,
     mut progress: impl FnMut(usize, usize),
 ) -> Result<()> {
-    for (k, (structure, input)) in inputs.iter().enumerate().skip(next) {
-        let tracker = run
-            .trackers
-            .get_mut(structure)
-            .expect("a tracker per watched structure");
-        let actions = track(tracker, input)?;
-        let d = dispatch(
-            structure,
-            actions,
-            &mut run.lane,
-            &mut run.out,
-            Pace::Deterministic,
-        )?;
-        if d.checkpoint_due {
-            run.lane.drain(&mut run.out)?;
-            checkpoints.save(&mut run.out, &run.trackers, k + 1)?;
+    let ahead = inputs.get(next..).unwrap_or_default();
+    std::thread::scope(|scope| {
+        let (tx, rx) = std::sync::mpsc::sync_channel(PREPARED_AHEAD);
+        std::thread::Builder::new()
+            .name("replay-reader".into())
+            .spawn_scoped(scope, move || {
+                for (_, input) in ahead {
+                    let prepared = match input {
+                        Input::Recorded(msg) => Some(Prepared::new(&msg.data)),
+                        _ => None,
+                    };
+                    // The tracking side stopped (an error): nothing left to prepare.
+                    if tx.send(prepared).is_err() {
+                        break;
+                    }
+                }
+            })?;
+        for (k, (structure, input)) in inputs.iter().enumerate().skip(next) {
+            let prepared = rx.recv()?;
+            let tracker = run
+                .trackers
+                .get_mut(structure)
+                .expect("a tracker per watched structure");
+            let actions = track(tracker, input, prepared)?;
+            let d = dispatch(
+                structure,
+                actions,
+                &mut run.lane,
+                &mut run.out,
+                Pace::Deterministic,
+            )?;
+            if d.checkpoint_due {
+                run.lane.drain(&mut run.out)?;
+                checkpoints.save(&mut run.out, &run.trackers, k + 1)?;
+            }
+            run.out.summary.processed += 1;
+            progress(k + 1, inputs.len());
         }
-        run.out.summary.processed += 1;
-        progress(k + 1, inputs.len());
-    }
-    Ok(())
+        Ok(())
+    })
 }
 
-/// What `tracker` makes of one input. A modal set identified from raw data is published
-/// (on `modal`) before it is tracked; a refused accel block or window is published as
-/// rejected.
-fn track(tracker: &mut Tracker, input: &Input) -> Result<Vec<Action>> {
+/// Recorded payloads the reader thread prepares ahead of the tracking.
+const PREPARED_AHEAD: usize = 64;
+
+/// What `tracker` makes of one input (`prepared`: a recorded set's [`Prepared`] payload). A
+/// modal set identified from raw data is published (on `modal`) before it is tracked; a
+/// refused accel block or window is published as rejected.
+fn track(
+    tracker: &mut Tracker,
+    input: &Input,
+    prepared: Option<Prepared<'_>>,
+) -> Result<Vec<Action>> {
     Ok(match input {
-        Input::Recorded(msg) => tracker.handle(from_ns(msg.log_time), &msg.data),
+        Input::Recorded(msg) => {
+            let p = prepared.unwrap_or_else(|| Prepared::new(&msg.data));
+            tracker.handle_prepared(from_ns(msg.log_time), p)
+        }
         Input::Environment(msg) => tracker.handle_environment(from_ns(msg.log_time), &msg.data),
         Input::Identified(set) => {
             let bytes = serde_json::to_vec(&set.to_json())?;

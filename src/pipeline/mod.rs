@@ -24,7 +24,9 @@ pub mod verdict;
 use chrono::{DateTime, Utc};
 use serde::{Deserialize, Serialize};
 
-use crate::contract::modal_set::{ModalSet, Rejection, ValidationContext, parse_modal_set};
+use crate::contract::modal_set::{
+    ModalSet, Rejection, ValidationContext, modal_set_object, validate_modal_set,
+};
 use crate::contract::{Checkpoint, EigenBlock, Output, Rejected, Schema, digest};
 use crate::core::model::{Model, ParameterKind};
 use crate::core::updating::data::RawMode;
@@ -136,6 +138,26 @@ pub struct TrackerState {
 /// advanced publisher re-sends its cache to a restarted daemon): at least the cache of any
 /// publisher feeding it. An older re-delivery is rejected as out of order, never re-used.
 pub const DEDUP_WINDOW: usize = 1024;
+
+/// What [`Tracker::handle`] makes of a payload before it looks at the tracker's state: its
+/// content digest (the re-delivery check) and its JSON object (the first step of
+/// [`crate::contract::modal_set::parse_modal_set`]). Pure, so a driver may make it ahead
+/// on another thread.
+pub struct Prepared<'a> {
+    payload: &'a [u8],
+    digest: u128,
+    object: Result<serde_json::Map<String, serde_json::Value>, Rejection>,
+}
+
+impl<'a> Prepared<'a> {
+    pub fn new(payload: &'a [u8]) -> Self {
+        Self {
+            payload,
+            digest: digest(payload),
+            object: modal_set_object(payload),
+        }
+    }
+}
 
 /// Per parameter, why it gets no loosening alert, if so: a connection whose mean per-set σ
 /// over the commissioning sets is above `max_std` of its baseline ([`alerts::AlertThresholds::max_std`]).
@@ -351,7 +373,17 @@ impl Tracker {
     /// far ahead of). A payload handled before (the same bytes, within the last
     /// [`DEDUP_WINDOW`]) is skipped and counted in [`TrackerState::duplicates`]: no output.
     pub fn handle(&mut self, received: DateTime<Utc>, payload: &[u8]) -> Vec<Action> {
-        let digest = digest(payload);
+        self.handle_prepared(received, Prepared::new(payload))
+    }
+
+    /// [`Tracker::handle`] of a payload whose digest and JSON were made beforehand (a
+    /// replay makes them on another thread, ahead of the tracking): the same outputs.
+    pub fn handle_prepared(&mut self, received: DateTime<Utc>, p: Prepared<'_>) -> Vec<Action> {
+        let Prepared {
+            payload,
+            digest,
+            object,
+        } = p;
         if self.state.seen.contains(&digest) {
             self.state.duplicates += 1;
             return Vec::new();
@@ -368,7 +400,7 @@ impl Tracker {
             allow_equal_time: self.cfg.allow_equal_time,
             max_future: self.max_future.map(|ahead| (received, ahead)),
         };
-        match parse_modal_set(payload, &ctx) {
+        match object.and_then(|obj| validate_modal_set(&obj, &ctx)) {
             Ok(set) => self.handle_set(set, received, payload),
             Err(rej) => vec![Action::Publish(self.refuse(
                 received,
