@@ -178,6 +178,7 @@ fn options(args: &UpdateArgs) -> Result<ModeMatchingOptions> {
         final_step: FinalStep::Evaluate,
         sigma_tol: None,
         eps_tol: args.eps_tol,
+        error_tol: None,
         bounds: parse_bounds(&args.bounds)?,
     })
 }

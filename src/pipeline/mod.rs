@@ -296,6 +296,7 @@ impl Tracker {
         let opts = ModeMatchingOptions {
             sigma_tol: Some(cfg.step_tolerance),
             eps_tol: None,
+            error_tol: Some(cfg.error_tolerance),
             final_step: FinalStep::Extrapolate,
             bounds: cfg.bounds_pair(),
             ..Default::default()

@@ -120,6 +120,69 @@ fn the_epsilon_stopping_rule_stops_within_its_tolerance() {
     assert!(saved > 0, "the ε rule never stopped a fit earlier");
 }
 
+/// The contraction stopping rule (`error_tol`, the tracker's `error_tolerance`): noisy
+/// lab-frame fits started as a tracker's are, a few standard deviations from the minimum
+/// (the minimum of the tight fit moved by 3–5σ (15) in every ln θ, signs at random: the
+/// larger steps of a tracker's sets, those that end just above the step test after one
+/// iteration), stopping on steps below 0.5σ with and without the rule and taking the last
+/// step unevaluated. With it,
+/// every θ stays within 0.15σ of the tight fit's (the accuracy the rule asks for), in no more
+/// evaluations, and in fewer overall (measured: 5 of the 32 fits one evaluation fewer,
+/// every θ within 0.045σ). 32 truths and noise seeds.
+#[test]
+fn the_contraction_stopping_rule_stops_within_its_tolerance() {
+    use boltwatch::core::updating::FinalStep;
+    let model = load_model("lab-frame");
+    let mut rng = ChaCha8Rng::seed_from_u64(91);
+    let mut mm = ModeMatching::new(Evaluator::new(&model).unwrap());
+    let step_only = ModeMatchingOptions {
+        sigma_tol: Some(0.5),
+        final_step: FinalStep::Extrapolate,
+        bounds: Some((1e-3, 1e3)),
+        ..ModeMatchingOptions::default()
+    };
+    let with_rule = ModeMatchingOptions {
+        error_tol: Some(0.15),
+        ..step_only
+    };
+    let (mut saved, mut worst) = (0_i64, 0.0_f64);
+    for seed in 0..32 {
+        let mut truth: Vec<f64> = (0..16).map(|_| rng.random_range(0.7..1.4)).collect();
+        truth.push(1.0);
+        let data = simulated_data(&model, &truth, 9, 0.01, 0.05, true, 500 + seed);
+        let tight = mm
+            .run(&model, &data, &truth, &ModeMatchingOptions::default())
+            .unwrap();
+        let std = tight.std();
+        let size = rng.random_range(3.0..5.0);
+        let start: Vec<f64> = (0..17)
+            .map(|l| {
+                let sign = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
+                tight.theta[l] * (sign * size * std[l]).exp()
+            })
+            .collect();
+        let a = mm.run(&model, &data, &start, &step_only).unwrap();
+        let b = mm.run(&model, &data, &start, &with_rule).unwrap();
+        assert!(a.converged() && b.converged() && tight.converged());
+        let off = (0..17)
+            .map(|l| (b.theta[l] / tight.theta[l]).ln().abs() / std[l])
+            .fold(0.0_f64, f64::max);
+        println!(
+            "seed {seed}: {} evaluations with the rule, {} without; largest |Δ ln θ| {off:.3} σ",
+            b.evaluations, a.evaluations
+        );
+        assert!(off < 0.15, "seed {seed}: {off} σ from the minimum");
+        assert!(b.evaluations <= a.evaluations);
+        saved += a.evaluations as i64 - b.evaluations as i64;
+        worst = worst.max(off);
+    }
+    println!("largest distance {worst:.3} σ, {saved} evaluations saved");
+    assert!(
+        saved > 0,
+        "the contraction rule never stopped a fit earlier"
+    );
+}
+
 /// A connection far stiffer than anything the measured modes load (lab frame data simulated
 /// with C1L@J1L at θ = 1e5, the rest at spread values, 9 modes): with the bounds
 /// `1e-3…1e3 ×` nominal, the fit stops with that parameter at its upper bound, names it

@@ -21,6 +21,7 @@ pub(super) fn mm_options() -> ModeMatchingOptions {
         // of a candidate that cannot explain the data creep along a flat valley of ε for
         // 20–50 iterations and stall.
         eps_tol: Some(1e-3),
+        error_tol: None,
         bounds: None,
     }
 }

@@ -33,7 +33,7 @@ use crate::core::model::Model;
 pub use gauss_newton::FirstOrder;
 use gauss_newton::{
     FreeStep, clipped, covariance_from_jacobian, free_gauss_newton, gauss_newton_step,
-    normal_equations, within_std,
+    normal_equations, step_in_std, within_std,
 };
 pub use types::{
     FinalStep, IterationRecord, ModeMatchingOptions, ModeMatchingResult, ProgressFn, StepControl,
@@ -111,6 +111,7 @@ impl ModeMatching {
             last_jac: None,
             last_first_order: None,
             extrapolated: None,
+            last_step_in_std: None,
         };
         self.report(0, &st.history[0].clone());
         let termination = loop {
@@ -185,8 +186,9 @@ impl ModeMatching {
             let fo = FirstOrder::of(&g, undamped.as_ref());
             (theta.clone(), fo)
         });
+        let previous = st.last_step_in_std.take();
         if let Some(fs) = &undamped
-            && let Some(t) = self.converged_step(model, data, opts, bounds, fs, &g, st)?
+            && let Some(t) = self.converged_step(model, data, opts, bounds, fs, previous, &g, st)?
         {
             return Ok(Some(t));
         }
@@ -197,9 +199,21 @@ impl ModeMatching {
             within_std(fs, &gn, STALL_WITHIN_STD, data, &st.ev)
         });
         if self.damped_step(model, data, bounds, &a, &g, st)? {
+            // The contraction of the next iterate is measured against this step only if
+            // the step taken was (within 10 %) the undamped one.
+            let undamped_taken = undamped.as_ref().is_some_and(|fs| {
+                let gn = clipped(bounds, &theta, &fs.step);
+                let size = gn.iter().fold(0.0_f64, |m, d| m.max(d.abs()));
+                (0..theta.len())
+                    .all(|i| ((st.ev.theta[i] / theta[i]).ln() - gn[i]).abs() <= 0.1 * size)
+            });
+            if !undamped_taken {
+                st.last_step_in_std = None;
+            }
             self.accept(st);
             return Ok(None);
         }
+        st.last_step_in_std = None;
         let bounded = (0..theta.len()).any(|i| bounds.side(i, theta[i].ln(), 1e-12).is_some());
         if bounded && !st.hold_bounded {
             // The linear model promised a decrease from moving a parameter back from its
@@ -228,6 +242,7 @@ impl ModeMatching {
         opts: &ModeMatchingOptions,
         bounds: &LogBounds,
         fs: &FreeStep,
+        previous: Option<f64>,
         g: &faer::Col<f64>,
         st: &mut Iterate,
     ) -> Result<Option<Termination>, UpdateError> {
@@ -244,14 +259,19 @@ impl ModeMatching {
             let ad = fs.normal_times(&gn);
             2.0 * dot - gn.iter().zip(&ad).map(|(d, x)| d * x).sum::<f64>()
         };
+        let size = step_in_std(fs, &gn, data, &st.ev);
         let done = pred >= 0.0
             && (gn.iter().all(|d| d.exp_m1().abs() < opts.tol)
                 || opts
                     .sigma_tol
                     .is_some_and(|t| within_std(fs, &gn, t, data, &st.ev))
+                || opts
+                    .error_tol
+                    .is_some_and(|t| error_left(previous, size) < t)
                 || pred < EPS_RESOLUTION * st.ev.epsilon
                 || opts.eps_tol.is_some_and(|t| pred < t));
         if !done {
+            st.last_step_in_std = Some(size);
             return Ok(None);
         }
         let new: Vec<f64> = (0..theta.len()).map(|i| theta[i] * gn[i].exp()).collect();
@@ -410,6 +430,10 @@ struct Iterate {
     last_first_order: Option<(Vec<f64>, FirstOrder)>,
     /// The Gauss–Newton point of [`FinalStep::Extrapolate`].
     extrapolated: Option<Vec<f64>>,
+    /// The size of the last iteration's undamped step (largest `|Δ ln θ_i| / σ_i`), when
+    /// the step taken was that step: the denominator of the contraction of
+    /// [`ModeMatchingOptions::error_tol`].
+    last_step_in_std: Option<f64>,
 }
 
 fn check_theta(model: &Model, theta: &[f64]) -> Result<(), UpdateError> {
@@ -447,7 +471,11 @@ fn check_options(opts: &ModeMatchingOptions) -> Result<(), UpdateError> {
             reason: "must be a finite number > 0",
         });
     }
-    for (name, v) in [("sigma_tol", opts.sigma_tol), ("eps_tol", opts.eps_tol)] {
+    for (name, v) in [
+        ("sigma_tol", opts.sigma_tol),
+        ("eps_tol", opts.eps_tol),
+        ("error_tol", opts.error_tol),
+    ] {
         if let Some(v) = v
             && !(v.is_finite() && v > 0.0)
         {
@@ -468,4 +496,18 @@ fn check_options(opts: &ModeMatchingOptions) -> Result<(), UpdateError> {
         });
     }
     Ok(())
+}
+
+/// The distance left from the extrapolated θ to the minimum, in standard deviations, of
+/// [`ModeMatchingOptions::error_tol`]: `Θ / (1 − Θ) · r` with the contraction
+/// `Θ = r / r_prev` of the last two undamped steps; infinite without a previous step or
+/// when the steps did not shrink.
+fn error_left(previous: Option<f64>, size: f64) -> f64 {
+    match previous {
+        Some(r_prev) if size < r_prev => {
+            let contraction = size / r_prev;
+            contraction / (1.0 - contraction) * size
+        }
+        _ => f64::INFINITY,
+    }
 }

@@ -39,12 +39,29 @@ pub(super) fn within_std(
     data: &MeasuredData,
     ev: &Evaluation,
 ) -> bool {
-    let p = step.len();
-    let scale = match data.weighting {
+    let scale = variance_scale(data, ev, step.len());
+    (0..step.len()).all(|i| step[i].abs() < t * (fs.var[i] * scale).sqrt())
+}
+
+/// The factor of `(A⁺)_ii` in the variance of (15): `ε/(N − N_θ)` under weighting (9), else 1.
+fn variance_scale(data: &MeasuredData, ev: &Evaluation, p: usize) -> f64 {
+    match data.weighting {
         Weighting::Heuristic { .. } => ev.epsilon / data.n_data().saturating_sub(p).max(1) as f64,
         _ => 1.0,
-    };
-    (0..p).all(|i| step[i].abs() < t * (fs.var[i] * scale).sqrt())
+    }
+}
+
+/// The largest `|step_i|` in standard deviations of (15), scaled as in [`within_std`].
+pub(super) fn step_in_std(
+    fs: &FreeStep,
+    step: &[f64],
+    data: &MeasuredData,
+    ev: &Evaluation,
+) -> f64 {
+    let scale = variance_scale(data, ev, step.len());
+    (0..step.len()).fold(0.0_f64, |m, i| {
+        m.max(step[i].abs() / (fs.var[i] * scale).sqrt())
+    })
 }
 
 /// The normal matrix `A = J_uᵀJ_u` and gradient `g = J_uᵀr` (half that of ε) in

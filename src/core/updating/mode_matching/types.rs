@@ -37,6 +37,15 @@ pub struct ModeMatchingOptions {
     /// that accuracy, which is all a profile of ε needs, while θ may still creep along a
     /// flat valley for dozens of iterations.
     pub eps_tol: Option<f64>,
+    /// Also stop when the distance from the extrapolated θ (the current θ plus the
+    /// undamped step) to the minimum, estimated from this fit's own contraction, is below
+    /// this many standard deviations of (15): with `r_k` the largest `|Δ ln θ_i| / σ_i` of
+    /// the undamped step at iterate `k` and `Θ = r_k / r_{k−1}` (after a step that was the
+    /// undamped one), the steps left sum to about `Θ / (1 − Θ) · r_k` (the a-posteriori
+    /// error estimate of a linearly convergent iteration; Deuflhard, *Newton Methods for
+    /// Nonlinear Problems*, 2004, §1.2 and §4.2). Needs a previous step, so it applies
+    /// from the second iterate on. For trackers, with [`FinalStep::Extrapolate`].
+    pub error_tol: Option<f64>,
     /// Levenberg–Marquardt: keep every θ_i within `[lo, hi] ×` its nominal value. A
     /// parameter the data cannot pin down (a connection already far stiffer than what the
     /// measured modes load) otherwise runs off towards 0 or ∞ while ε barely changes, and
@@ -56,6 +65,7 @@ impl Default for ModeMatchingOptions {
             final_step: FinalStep::Evaluate,
             sigma_tol: None,
             eps_tol: None,
+            error_tol: None,
             bounds: None,
         }
     }
