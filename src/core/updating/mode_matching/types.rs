@@ -43,7 +43,7 @@ pub struct ModeMatchingOptions {
     /// the undamped step at iterate `k` and `Θ = r_k / r_{k−1}` (after a step that was the
     /// undamped one), the steps left sum to about `Θ / (1 − Θ) · r_k` (the a-posteriori
     /// error estimate of a linearly convergent iteration; Deuflhard, *Newton Methods for
-    /// Nonlinear Problems*, 2004, §1.2 and §4.2). Needs a previous step, so it applies
+    /// Nonlinear Problems*, 2004, ch. 2 and §4.2). Needs a previous step, so it applies
     /// from the second iterate on. For trackers, with [`FinalStep::Extrapolate`].
     pub error_tol: Option<f64>,
     /// Levenberg–Marquardt: keep every θ_i within `[lo, hi] ×` its nominal value. A
