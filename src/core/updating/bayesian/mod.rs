@@ -18,8 +18,8 @@
 //! The paper's substeps (22) and (23) carry two typos, corrected here from `∂J_p = 0`:
 //! in (22) `σ_c⁻¹ g_λ` is `σ_c⁻² g_λ`, and in (23) `G_θᵀ g_θ` is `σ_c⁻² G_θᵀ g_θ`.
 //!
-//! Small models (below [`SPARSE_FROM_DOF`] DOFs) use dense linear algebra: each φ substep
-//! is a Householder QR of `C_m = [σ_c⁻¹ A_m; W^{1/2} L_o]`, and the Hessian of `F` is
+//! Small models (below [`SPARSE_FROM_DOF`] DOFs): each φ substep is a Householder QR of
+//! `C_m = [σ_c⁻¹ A_m; W^{1/2} L_o]` (sparse, [`sparse_qr`]), and the Hessian of `F` is
 //! assembled from `Qᵀ J_y` and `R⁻ᵀ E` so that the large terms of the Schur complement
 //! cancel analytically, not in floating point (see [`BayesProblem::reduced`]). Large models
 //! use sparse φ substeps: the same least-squares problems through the sparse `LDLᵀ` of the
@@ -28,10 +28,8 @@
 //! is singular to working precision, the augmented system factored by a sparse LU
 //! ([`augmented`]) instead.
 
-use faer::dyn_stack::{MemBuffer, MemStack};
-use faer::linalg::householder;
-use faer::linalg::solvers::{Qr, Solve};
-use faer::{Col, Conj, Mat, MatMut, Par, Side};
+use faer::linalg::solvers::Solve;
+use faer::{Col, Mat, Side};
 
 mod alternating;
 mod augmented;
@@ -40,6 +38,7 @@ mod memory;
 mod newton;
 mod reduced;
 mod shifted;
+mod sparse_qr;
 mod sweep;
 mod trust;
 mod workflow;
@@ -69,6 +68,7 @@ use augmented::{AugmentedFactor, AugmentedSymbolic};
 pub use reduced::AUGMENTED_FALLBACK_MAX_DOF;
 use shifted::ShiftedFactor;
 pub use shifted::{REFINE_ACCEPT, REFINE_MAX_STEPS, REFINE_TOL};
+use sparse_qr::{PhiQrSymbolic, SparsePhiFactor};
 
 /// Failures of the Bayesian solver.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -153,9 +153,13 @@ pub struct BayesProblem {
     n: usize,
     p: usize,
     model: Model,
-    /// Dense `M`, for forming `A_m` in the φ substep's QR; `None` for a large model, whose
-    /// φ substeps are sparse.
+    /// Dense `M` of a small model, whose φ substeps are QR factorizations ([`sparse_qr`])
+    /// and whose Hessian (16) can be formed for the TSVD; `None` for a large model, whose
+    /// φ substeps go through the shifted stiffness ([`shifted`]).
     m_dense: Option<Mat<f64>>,
+    /// Per mode, the symbolic QR of its `C_m` (the pattern depends on the mode's measured
+    /// rows only), analysed on first use.
+    phi_qr: Vec<std::sync::OnceLock<Option<PhiQrSymbolic>>>,
     /// Symbolic analyses of the augmented systems, the fallback of the sparse φ substeps.
     augmented: AugmentedSymbolic,
     /// Sparse φ substeps that fell back to the augmented system's LU.
@@ -275,6 +279,7 @@ impl BayesProblem {
             p,
             m_dense: (n < SPARSE_FROM_DOF).then(|| model.mass_dense()),
             augmented: AugmentedSymbolic::new(data.modes.len()),
+            phi_qr: (0..modes.len()).map(|_| Default::default()).collect(),
             fallbacks: 0.into(),
             progress: std::sync::Mutex::new(None),
             model: model.clone(),

@@ -1,57 +1,23 @@
 //! The φ elimination (substep (21)) and the reduced objective `F(λ, θ)`: for fixed
-//! `(λ, θ)` each `φ_m` solves a linear least-squares problem (dense Householder QR, or the
-//! shifted stiffness's sparse factorization for large models), and `F`'s gradient and Hessian are the
-//! Schur complement of (16) (module docs of [`super`]).
+//! `(λ, θ)` each `φ_m` solves a linear least-squares problem (a sparse Householder QR for
+//! small models, the shifted stiffness's sparse factorization for large ones), and `F`'s
+//! gradient and Hessian are the Schur complement of (16) (module docs of [`super`]).
 
 use super::*;
 
-/// Householder QR of `C_m = [σ_c⁻¹ A_m; W^{1/2} L_o]` (`(n + n_o) × n`), so that
-/// `N_m = C_mᵀ C_m = RᵀR`; `Q` is kept as its reflectors and applied, never formed.
-pub(super) struct PhiFactor {
-    qr: Qr<f64>,
-}
-
-impl PhiFactor {
-    /// `rhs ← Qᵀ rhs` (rhs has `n + n_o` rows).
-    pub(super) fn apply_qt(&self, rhs: MatMut<'_, f64>) {
-        let basis = self.qr.Q_basis();
-        let coeff = self.qr.Q_coeff();
-        let mut mem = MemBuffer::new(
-            householder::apply_block_householder_sequence_transpose_on_the_left_in_place_scratch::<
-                f64,
-            >(basis.nrows(), coeff.nrows(), rhs.ncols()),
-        );
-        householder::apply_block_householder_sequence_transpose_on_the_left_in_place_with_conj(
-            basis,
-            coeff,
-            Conj::No,
-            rhs,
-            Par::Seq,
-            MemStack::new(&mut mem),
-        );
-    }
-
-    /// The `n × n` triangle `R`.
-    pub(super) fn r(&self) -> faer::MatRef<'_, f64> {
-        let n = self.qr.thin_R().ncols();
-        self.qr.thin_R().submatrix(0, 0, n, n)
-    }
-}
-
 /// `K(θ)` for the φ substeps of one θ.
 pub(super) enum ThetaMatrices {
-    Dense(Mat<f64>),
+    /// Values on the model's union pattern, for the QR of a small model ([`sparse_qr`]).
+    SparseQr(Vec<f64>),
     /// Values on the model's union pattern, and θ (each mode's shifted matrix is formed
     /// on the reordered pattern for its factorization).
-    Sparse {
-        values: Vec<f64>,
-        theta: Vec<f64>,
-    },
+    Sparse { values: Vec<f64>, theta: Vec<f64> },
 }
 
 /// The factorization of one mode's φ substep.
 pub(super) enum ModeFactor {
-    Dense(PhiFactor),
+    /// The sparse Householder QR of `C_m` ([`sparse_qr`]), for a small model.
+    SparseQr(Box<SparsePhiFactor>),
     /// The shifted stiffness and the Woodbury solution ([`shifted`]).
     Shifted(Box<ShiftedFactor>),
     /// The augmented system's LU ([`augmented`]): the fallback of [`ModeFactor::Shifted`].
@@ -69,27 +35,20 @@ impl BayesProblem {
         m: usize,
         lambda: f64,
         fact: &ModeFactor,
-        mut jy: Mat<f64>,
+        jy: Mat<f64>,
         e: Mat<f64>,
     ) -> Result<(Mat<f64>, Mat<f64>), BayesError> {
         // Sparse: s = P⊥J_y − C N⁻¹E, u = N⁻¹(CᵀJ_y + E), and J_yᵀs − Eᵀu is the block.
         let minus_e = &e * faer::Scale(-1.0);
         let (s, u) = match fact {
-            ModeFactor::Dense(fact) => {
-                let n = e.nrows();
-                fact.apply_qt(jy.as_mut());
-                let x1 = jy.subrows(0, n);
-                let x2 = jy.subrows(n, jy.nrows() - n);
-                let mut y = e;
-                fact.r()
-                    .transpose()
-                    .solve_lower_triangular_in_place(y.as_mut());
-                let block = x2.transpose() * x2
+            ModeFactor::SparseQr(fact) => {
+                let (x1, x2) = fact.apply_qt(jy.as_ref());
+                let y = fact.solve_rt(e.as_ref());
+                let block = x2.transpose() * &x2
                     - x1.transpose() * &y
-                    - y.transpose() * x1
+                    - y.transpose() * &x1
                     - y.transpose() * &y;
-                let mut z = x1 + &y;
-                fact.r().solve_upper_triangular_in_place(z.as_mut()); // R⁻¹(X₁ + Y)
+                let z = fact.solve_r(x1 + &y); // P R⁻¹(X₁ + Y)
                 return Ok((block, z));
             }
             ModeFactor::Shifted(fact) => {
@@ -146,10 +105,12 @@ impl BayesProblem {
         k
     }
 
-    /// `K(θ)` for the φ substeps at one θ: dense, or its values on the union pattern.
+    /// `K(θ)` for the φ substeps at one θ: its values on the union pattern.
     pub(super) fn theta_matrices(&self, theta: &[f64]) -> ThetaMatrices {
         if self.m_dense.is_some() {
-            ThetaMatrices::Dense(self.stiffness(theta))
+            let mut v = vec![0.0; self.model.union_pattern().pattern.val().len()];
+            self.model.shifted_stiffness_values(theta, 0.0, &mut v);
+            ThetaMatrices::SparseQr(v)
         } else {
             let mut v = vec![0.0; self.model.union_pattern().pattern.val().len()];
             self.model.shifted_stiffness_values(theta, 0.0, &mut v);
@@ -161,7 +122,7 @@ impl BayesProblem {
     }
 
     /// The optimal `φ_m` for fixed `(λ_m, θ)`, substep (21), and its factorization. `φ_m`
-    /// minimizes `‖C_m φ − [0; W^{1/2} ψ̂]‖²`, solved by Householder QR of `C_m` (dense) or
+    /// minimizes `‖C_m φ − [0; W^{1/2} ψ̂]‖²`, solved by Householder QR of `C_m` (small models) or
     /// through the augmented system (sparse), rather than through `N_m = C_mᵀC_m`, whose
     /// condition number (~1e14 for σ_c = 10 on the cantilever) is the square of `C_m`'s.
     pub(super) fn mode_factor(
@@ -179,26 +140,21 @@ impl BayesProblem {
             d[(n + i, 0)] = row.w.sqrt() * row.psi;
         }
         match k {
-            ThetaMatrices::Dense(k) => {
-                let m_dense = self.m_dense.as_ref().expect("dense K goes with dense M");
-                let mut c = Mat::zeros(n + no, n);
-                c.submatrix_mut(0, 0, n, n)
-                    .copy_from((k - m_dense * faer::Scale(lambda)) * faer::Scale(sigma_inv));
-                for (i, row) in mode.rows.iter().enumerate() {
-                    let sw = row.w.sqrt();
-                    for &(j, cj) in &row.dofs {
-                        c[(n + i, j)] += sw * cj;
-                    }
-                }
-                let fact = PhiFactor { qr: c.qr() };
-                let r = fact.r();
-                if (0..n).any(|i| !(r[(i, i)].abs() > 0.0 && r[(i, i)].is_finite())) {
-                    return Err(BayesError::PhiSystemSingular { mode: m + 1 });
-                }
-                fact.apply_qt(d.as_mut());
-                let mut x = d.subrows(0, n).to_owned();
-                r.solve_upper_triangular_in_place(x.as_mut());
-                Ok((x.col(0).iter().copied().collect(), ModeFactor::Dense(fact)))
+            ThetaMatrices::SparseQr(values) => {
+                let mut a = values.clone();
+                self.model.subtract_mass_values(lambda, &mut a);
+                let symbolic = self.phi_qr[m]
+                    .get_or_init(|| PhiQrSymbolic::new(&self.model, &mode.rows))
+                    .as_ref()
+                    .ok_or(BayesError::PhiSystemSingular { mode: m + 1 })?;
+                let fact = SparsePhiFactor::new(symbolic, &self.model, &a, sigma_inv, &mode.rows)
+                    .ok_or(BayesError::PhiSystemSingular { mode: m + 1 })?;
+                let (q1d, _) = fact.apply_qt(d.as_ref());
+                let x = fact.solve_r(q1d);
+                Ok((
+                    x.col(0).iter().copied().collect(),
+                    ModeFactor::SparseQr(Box::new(fact)),
+                ))
             }
             ThetaMatrices::Sparse { values, theta } => {
                 let mut a = values.clone();
