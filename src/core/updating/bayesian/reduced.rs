@@ -107,13 +107,11 @@ impl BayesProblem {
 
     /// `K(θ)` for the φ substeps at one θ: its values on the union pattern.
     pub(super) fn theta_matrices(&self, theta: &[f64]) -> ThetaMatrices {
+        let mut v = vec![0.0; self.model.union_pattern().pattern.val().len()];
+        self.model.shifted_stiffness_values(theta, 0.0, &mut v);
         if self.m_dense.is_some() {
-            let mut v = vec![0.0; self.model.union_pattern().pattern.val().len()];
-            self.model.shifted_stiffness_values(theta, 0.0, &mut v);
             ThetaMatrices::SparseQr(v)
         } else {
-            let mut v = vec![0.0; self.model.union_pattern().pattern.val().len()];
-            self.model.shifted_stiffness_values(theta, 0.0, &mut v);
             ThetaMatrices::Sparse {
                 values: v,
                 theta: theta.to_vec(),
@@ -147,7 +145,7 @@ impl BayesProblem {
                     .get_or_init(|| PhiQrSymbolic::new(&self.model, &mode.rows))
                     .as_ref()
                     .ok_or(BayesError::PhiSystemSingular { mode: m + 1 })?;
-                let fact = SparsePhiFactor::new(symbolic, &self.model, &a, sigma_inv, &mode.rows)
+                let fact = SparsePhiFactor::new(symbolic, &self.model, &a, sigma_inv)
                     .ok_or(BayesError::PhiSystemSingular { mode: m + 1 })?;
                 let (q1d, _) = fact.apply_qt(d.as_ref());
                 let x = fact.solve_r(q1d);

@@ -19,19 +19,20 @@ use super::ShapeRow;
 use crate::core::model::Model;
 
 /// The symbolic QR of one mode's `C_m` (its pattern: the model's union pattern over the
-/// measured rows), with its column order.
+/// measured rows), with its column order, and the values of the measured rows, which do
+/// not depend on `(λ, θ)` (zero where `σ_c⁻¹A` goes).
 pub(in crate::core::updating::bayesian) struct PhiQrSymbolic {
     symbolic: SymbolicQr<usize>,
     col_ptr: Vec<usize>,
     row_idx: Vec<usize>,
+    measured_values: Vec<f64>,
 }
 
 impl PhiQrSymbolic {
     /// `None` if faer cannot analyse the pattern.
     pub(super) fn new(model: &Model, rows: &[ShapeRow]) -> Option<Self> {
         let n = model.n_dof();
-        let zeros = vec![0.0; model.union_pattern().pattern.val().len()];
-        let (col_ptr, row_idx, _) = assemble_c(model, &zeros, 1.0, rows);
+        let (col_ptr, row_idx, measured_values) = pattern_of_c(model, rows);
         let sym = SymbolicSparseColMatRef::new_checked(n + rows.len(), n, &col_ptr, None, &row_idx);
         let symbolic = factorize_symbolic_qr(
             sym,
@@ -45,7 +46,22 @@ impl PhiQrSymbolic {
             symbolic,
             col_ptr,
             row_idx,
+            measured_values,
         })
+    }
+
+    /// The values of `C_m` for the shifted stiffness `a` (on the union pattern): the
+    /// measured rows' and `σ_c⁻¹a` at the top of each column.
+    fn values(&self, model: &Model, a: &[f64], sigma_inv: f64) -> Vec<f64> {
+        let pattern = model.union_pattern().pattern.symbolic();
+        let mut val = self.measured_values.clone();
+        for j in 0..model.n_dof() {
+            let start = self.col_ptr[j];
+            for (k, p) in pattern.col_range(j).enumerate() {
+                val[start + k] = sigma_inv * a[p];
+            }
+        }
+        val
     }
 }
 
@@ -71,20 +87,18 @@ pub(super) struct SparsePhiFactor {
 }
 
 impl SparsePhiFactor {
-    /// Factors `C_m` for the shifted stiffness `a` (values on the model's union pattern),
-    /// `σ_c⁻¹` and the mode's measured rows. `None` if the factorization fails or `R` has a
-    /// zero or non-finite pivot.
+    /// Factors the mode's `C_m` (analysed in `analysis`) for the shifted stiffness `a`
+    /// (values on the model's union pattern) and `σ_c⁻¹`. `None` if the factorization fails
+    /// or `R` has a zero or non-finite pivot.
     pub(super) fn new(
         analysis: &PhiQrSymbolic,
         model: &Model,
         a: &[f64],
         sigma_inv: f64,
-        rows: &[ShapeRow],
     ) -> Option<Self> {
         let n = model.n_dof();
-        let m = n + rows.len();
-        let (col_ptr, row_idx, val) = assemble_c(model, a, sigma_inv, rows);
-        debug_assert!(col_ptr == analysis.col_ptr && row_idx == analysis.row_idx);
+        let m = analysis.symbolic.nrows();
+        let val = analysis.values(model, a, sigma_inv);
         let sym =
             SymbolicSparseColMatRef::new_checked(m, n, &analysis.col_ptr, None, &analysis.row_idx);
         let c = SparseColMatRef::new(sym, &val);
@@ -212,14 +226,10 @@ impl SparsePhiFactor {
     }
 }
 
-/// `C_m` in compressed columns: column `j` holds `σ_c⁻¹A`'s entries (union pattern rows,
-/// ascending) and then the measured rows' (`n + i`, ascending), duplicates summed.
-fn assemble_c(
-    model: &Model,
-    a: &[f64],
-    sigma_inv: f64,
-    rows: &[ShapeRow],
-) -> (Vec<usize>, Vec<usize>, Vec<f64>) {
+/// The pattern of `C_m` in compressed columns: column `j` holds `σ_c⁻¹A`'s entries (union
+/// pattern rows, ascending; value 0 here) and then the measured rows' (`n + i`, ascending,
+/// with their values, duplicates summed).
+fn pattern_of_c(model: &Model, rows: &[ShapeRow]) -> (Vec<usize>, Vec<usize>, Vec<f64>) {
     let n = model.n_dof();
     let pattern = model.union_pattern().pattern.symbolic();
     let mut g_cols: Vec<Vec<(usize, f64)>> = vec![Vec::new(); n];
@@ -233,13 +243,13 @@ fn assemble_c(
         }
     }
     let mut col_ptr = vec![0usize; n + 1];
-    let mut row_idx = Vec::with_capacity(a.len() + rows.len());
-    let mut val = Vec::with_capacity(a.len() + rows.len());
+    let nnz = pattern.compute_nnz() + rows.len();
+    let mut row_idx = Vec::with_capacity(nnz);
+    let mut val = Vec::with_capacity(nnz);
     for j in 0..n {
-        let range = pattern.col_range(j);
-        for (p, &i) in range.clone().zip(pattern.row_idx_of_col_raw(j)) {
+        for &i in pattern.row_idx_of_col_raw(j) {
             row_idx.push(i);
-            val.push(sigma_inv * a[p]);
+            val.push(0.0);
         }
         for &(i, v) in &g_cols[j] {
             row_idx.push(i);
