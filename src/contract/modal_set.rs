@@ -16,9 +16,9 @@ use chrono::{DateTime, Utc};
 use serde_json::{Map, Value};
 
 pub use super::fields::capped;
-use super::fields::{format_time, json_object, no_unknown_fields};
+use super::fields::{format_time, json_object, no_unknown_fields, time_field};
 use envelope::{
-    check_schema, parse_channels, parse_peaks, parse_source, parse_time, watched_structure,
+    check_schema, check_time, parse_channels, parse_peaks, parse_source, watched_structure,
 };
 use modes::{parse_missing, parse_modes, unique_labels};
 
@@ -195,10 +195,49 @@ pub fn validate_modal_set(
     obj: &Map<String, Value>,
     ctx: &ValidationContext,
 ) -> Result<ModalSet, Rejection> {
-    check_schema(obj)?;
-    no_unknown_fields(obj, TOP_FIELDS, "")?;
-    let structure = watched_structure(obj, ctx)?;
-    let time = parse_time(obj, ctx)?;
+    screen_modal_set(obj, ctx).finish(ctx)
+}
+
+/// A modal set checked by every rule that does not depend on the receiver's state
+/// ([`screen_modal_set`]); [`Screened::finish`] adds the rules that do (the time against
+/// the receiver's clock and the last accepted set) in their place in the order of the
+/// rules, so the same payload gets the same verdict as from [`validate_modal_set`].
+#[derive(Debug)]
+pub struct Screened {
+    /// The set's time, when every rule before the time's passed (its checks against the
+    /// receiver's state are still to come).
+    time: Option<DateTime<Utc>>,
+    outcome: Result<ModalSet, Rejection>,
+}
+
+/// The rules of [`validate_modal_set`] that depend on the payload, the watched structures
+/// (`ctx.structures`) and the model's channels (`ctx.model_channels`) alone, so that a
+/// driver may run them ahead on another thread; `ctx.last_time` and `ctx.max_future` are
+/// not used here.
+pub fn screen_modal_set(obj: &Map<String, Value>, ctx: &ValidationContext) -> Screened {
+    let head = check_schema(obj)
+        .and_then(|()| no_unknown_fields(obj, TOP_FIELDS, ""))
+        .and_then(|()| watched_structure(obj, ctx))
+        .and_then(|structure| Ok((structure, time_field(obj)?)));
+    match head {
+        Ok((structure, time)) => Screened {
+            time: Some(time),
+            outcome: screen_body(obj, ctx, structure, time),
+        },
+        Err(rej) => Screened {
+            time: None,
+            outcome: Err(rej),
+        },
+    }
+}
+
+/// The fields after the time, for [`screen_modal_set`].
+fn screen_body(
+    obj: &Map<String, Value>,
+    ctx: &ValidationContext,
+    structure: &str,
+    time: DateTime<Utc>,
+) -> Result<ModalSet, Rejection> {
     let channels = parse_channels(obj, ctx.model_channels)?;
     let modes = parse_modes(obj, channels.len())?;
     let super::environment::Conditions {
@@ -220,6 +259,17 @@ pub fn validate_modal_set(
         missing,
         unexplained_peaks,
     })
+}
+
+impl Screened {
+    /// The verdict in `ctx`: the time's rules against the receiver's state where they
+    /// come, then the rest of the screening's.
+    pub fn finish(self, ctx: &ValidationContext) -> Result<ModalSet, Rejection> {
+        if let Some(time) = self.time {
+            check_time(time, ctx)?;
+        }
+        self.outcome
+    }
 }
 
 impl ModalSet {

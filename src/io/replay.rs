@@ -32,7 +32,7 @@ use super::model::{adopt_law, load_structure};
 use crate::contract::modal_set::{ModalSet, Rejection};
 use crate::contract::{Alert, Estimate, Output};
 use crate::pipeline::accel::{AccelFront, FrontEvent, IdentifySettings};
-use crate::pipeline::{Action, Prepared, Tracker, TrackerState};
+use crate::pipeline::{Action, Prepared, SetScreen, Tracker, TrackerState};
 use crate::settings::Settings;
 
 mod output;
@@ -480,14 +480,19 @@ fn feed(
     mut progress: impl FnMut(usize, usize),
 ) -> Result<()> {
     let ahead = inputs.get(next..).unwrap_or_default();
+    let screens: HashMap<String, SetScreen> = run
+        .trackers
+        .iter()
+        .map(|(s, t)| (s.clone(), t.screen().clone()))
+        .collect();
     std::thread::scope(|scope| {
         let (tx, rx) = std::sync::mpsc::sync_channel(PREPARED_AHEAD);
         std::thread::Builder::new()
             .name("replay-reader".into())
             .spawn_scoped(scope, move || {
-                for (_, input) in ahead {
-                    let prepared = match input {
-                        Input::Recorded(msg) => Some(Prepared::new(&msg.data)),
+                for (structure, input) in ahead {
+                    let prepared = match (input, screens.get(structure.as_str())) {
+                        (Input::Recorded(msg), Some(screen)) => Some(screen.prepare(&msg.data)),
                         _ => None,
                     };
                     // The tracking side stopped (an error): nothing left to prepare.
@@ -534,7 +539,7 @@ fn track(
 ) -> Result<Vec<Action>> {
     Ok(match input {
         Input::Recorded(msg) => {
-            let p = prepared.unwrap_or_else(|| Prepared::new(&msg.data));
+            let p = prepared.unwrap_or_else(|| tracker.screen().prepare(&msg.data));
             tracker.handle_prepared(from_ns(msg.log_time), p)
         }
         Input::Environment(msg) => tracker.handle_environment(from_ns(msg.log_time), &msg.data),

@@ -25,7 +25,7 @@ use chrono::{DateTime, Utc};
 use serde::{Deserialize, Serialize};
 
 use crate::contract::modal_set::{
-    ModalSet, Rejection, ValidationContext, modal_set_object, validate_modal_set,
+    ModalSet, Rejection, Screened, ValidationContext, modal_set_object, screen_modal_set,
 };
 use crate::contract::{Checkpoint, EigenBlock, Output, Rejected, Schema, digest};
 use crate::core::model::{Model, ParameterKind};
@@ -140,21 +140,44 @@ pub struct TrackerState {
 pub const DEDUP_WINDOW: usize = 1024;
 
 /// What [`Tracker::handle`] makes of a payload before it looks at the tracker's state: its
-/// content digest (the re-delivery check) and its JSON object (the first step of
-/// [`crate::contract::modal_set::parse_modal_set`]). Pure, so a driver may make it ahead
-/// on another thread.
+/// content digest (the re-delivery check) and its validation by every rule that does not
+/// depend on that state ([`crate::contract::modal_set::screen_modal_set`]). Pure, so a
+/// driver may make it ahead on another thread ([`SetScreen::prepare`]).
 pub struct Prepared<'a> {
     payload: &'a [u8],
     digest: u128,
-    object: Result<serde_json::Map<String, serde_json::Value>, Rejection>,
+    screened: Result<Screened, Rejection>,
 }
 
-impl<'a> Prepared<'a> {
-    pub fn new(payload: &'a [u8]) -> Self {
-        Self {
+/// What a tracker validates a set against before it looks at its state: its structure's
+/// name and its model's channels. A copy, for a driver to prepare payloads on another
+/// thread ([`Tracker::screen`]).
+#[derive(Debug, Clone)]
+pub struct SetScreen {
+    structure: String,
+    channels: Vec<String>,
+}
+
+impl SetScreen {
+    /// The digest and the screening of `payload` ([`Prepared`]).
+    pub fn prepare<'a>(&self, payload: &'a [u8]) -> Prepared<'a> {
+        let structures = [self.structure.as_str()];
+        let ctx = self.context(&structures);
+        Prepared {
             payload,
             digest: digest(payload),
-            object: modal_set_object(payload),
+            screened: modal_set_object(payload).map(|obj| screen_modal_set(&obj, &ctx)),
+        }
+    }
+
+    /// A validation context with no state in it (no last time, no clock).
+    fn context<'s>(&'s self, structures: &'s [&'s str]) -> ValidationContext<'s> {
+        ValidationContext {
+            structures,
+            model_channels: &self.channels,
+            last_time: None,
+            allow_equal_time: false,
+            max_future: None,
         }
     }
 }
@@ -194,8 +217,8 @@ pub struct Tracker {
     is_connection: Vec<bool>,
     /// Nominal rotational stiffness of parameter `l` (N·m/rad), when its connections share one.
     k_nominal: Vec<Option<f64>>,
-    /// The model's channel names, in model order (for validation).
-    channel_names: Vec<String>,
+    /// The structure's name and the model's channel names, in model order (validation).
+    screen: SetScreen,
     /// How far ahead of its reception a set may be stamped (live only).
     max_future: Option<chrono::TimeDelta>,
     /// The model's eigenvalue range over the bounds, for the lowest `.0` modes, computed at
@@ -288,7 +311,10 @@ impl Tracker {
         let k_nominal = (0..model.n_params())
             .map(|l| model.connection_stiffness(l))
             .collect();
-        let model_channel_names = model.channels().iter().map(|c| c.name.clone()).collect();
+        let screen = SetScreen {
+            structure: model.name.clone(),
+            channels: model.channels().iter().map(|c| c.name.clone()).collect(),
+        };
         let mut evaluator = Evaluator::new(&model)?;
         evaluator.set_warm_start(true);
         evaluator.set_pairing(cfg.pairing.into());
@@ -309,7 +335,7 @@ impl Tracker {
             opts,
             is_connection,
             k_nominal,
-            channel_names: model_channel_names,
+            screen,
             max_future: None,
             eigen_range: None,
         })
@@ -374,16 +400,23 @@ impl Tracker {
     /// far ahead of). A payload handled before (the same bytes, within the last
     /// [`DEDUP_WINDOW`]) is skipped and counted in [`TrackerState::duplicates`]: no output.
     pub fn handle(&mut self, received: DateTime<Utc>, payload: &[u8]) -> Vec<Action> {
-        self.handle_prepared(received, Prepared::new(payload))
+        self.handle_prepared(received, self.screen.prepare(payload))
     }
 
-    /// [`Tracker::handle`] of a payload whose digest and JSON were made beforehand (a
-    /// replay makes them on another thread, ahead of the tracking): the same outputs.
+    /// What this tracker validates a set against before it looks at its state, for a
+    /// driver that prepares payloads ahead ([`Tracker::handle_prepared`]).
+    pub fn screen(&self) -> &SetScreen {
+        &self.screen
+    }
+
+    /// [`Tracker::handle`] of a payload prepared beforehand by this tracker's
+    /// [`Tracker::screen`] (a replay prepares them on another thread, ahead of the
+    /// tracking): the same outputs.
     pub fn handle_prepared(&mut self, received: DateTime<Utc>, p: Prepared<'_>) -> Vec<Action> {
         let Prepared {
             payload,
             digest,
-            object,
+            screened,
         } = p;
         if self.state.seen.contains(&digest) {
             self.state.duplicates += 1;
@@ -393,15 +426,14 @@ impl Tracker {
             self.state.seen.pop_front();
         }
         self.state.seen.push_back(digest);
-        let structures = [self.model.name.as_str()];
+        let structures = [self.screen.structure.as_str()];
         let ctx = ValidationContext {
-            structures: &structures,
-            model_channels: &self.channel_names,
             last_time: self.state.last_time,
             allow_equal_time: self.cfg.allow_equal_time,
             max_future: self.max_future.map(|ahead| (received, ahead)),
+            ..self.screen.context(&structures)
         };
-        match object.and_then(|obj| validate_modal_set(&obj, &ctx)) {
+        match screened.and_then(|s| s.finish(&ctx)) {
             Ok(set) => self.handle_set(set, received, payload),
             Err(rej) => vec![Action::Publish(self.refuse(
                 received,

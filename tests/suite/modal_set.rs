@@ -456,6 +456,40 @@ fn rejects_time_before_last_accepted() {
     assert!(parse_with(payload.as_bytes(), Some(t("2026-11-21T09:59:59Z")), false).is_ok());
 }
 
+/// The rules that need the receiver's state (the time against the last accepted set) can
+/// run after the others, on another thread ([`screen_modal_set`], [`Screened::finish`]),
+/// and a payload still gets the verdict of the first rule it breaks in the order of the
+/// rules: a stale time before a bad channel, a bad schema before a stale time.
+#[test]
+fn screening_ahead_keeps_the_order_of_the_rules() {
+    let channels = model_channels();
+    let ctx = |last: Option<DateTime<Utc>>| ValidationContext {
+        structures: STRUCTURES,
+        model_channels: &channels,
+        last_time: last,
+        allow_equal_time: false,
+        max_future: None,
+    };
+    let stateless = ctx(None);
+    let last = Some(t("2026-11-21T10:00:01Z"));
+    let bad_channel = with(|v| v["channels"] = json!(["C1L.1", "C9X.1"]));
+    let bad_schema = with(|v| v["schema"] = json!("boltwatch.modal_set.v0"));
+    for (v, last, field) in [
+        (full(), last, "time"),
+        (bad_channel.clone(), last, "time"),
+        (bad_channel, None, "channels[1]"),
+        (bad_schema, last, "schema"),
+    ] {
+        let obj = modal_set_object(v.to_string().as_bytes()).unwrap();
+        let ahead = screen_modal_set(&obj, &stateless).finish(&ctx(last));
+        assert_eq!(ahead, validate_modal_set(&obj, &ctx(last)));
+        assert_rejected(ahead, field, &[]);
+    }
+    let obj = modal_set_object(full().to_string().as_bytes()).unwrap();
+    let ok = screen_modal_set(&obj, &stateless).finish(&ctx(Some(t("2026-11-21T09:00:00Z"))));
+    assert_eq!(ok, parse(&full()));
+}
+
 #[test]
 fn rejects_equal_time_unless_allowed() {
     let last = t("2026-11-21T10:00:00Z");

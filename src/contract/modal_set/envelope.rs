@@ -6,9 +6,7 @@ use chrono::{DateTime, TimeDelta, Utc};
 use serde_json::{Map, Value};
 
 use super::{MODAL_SET_SCHEMA, Rejection, SpectrumPeak, ValidationContext};
-use crate::contract::fields::{
-    capped, format_time, kind, positive, reject, required, string, time_field,
-};
+use crate::contract::fields::{capped, format_time, kind, positive, reject, required, string};
 use crate::contract::nonfinite::nonfinite_token;
 
 /// Rule: `schema` is present and is [`MODAL_SET_SCHEMA`].
@@ -45,16 +43,12 @@ pub(super) fn watched_structure<'v>(
     Ok(structure)
 }
 
-/// `time`: an RFC 3339 time every output format holds, not too far ahead of the receiver's
-/// clock, and not before the last accepted set's (nor equal to it, outside replays).
-pub(super) fn parse_time(
-    obj: &Map<String, Value>,
-    ctx: &ValidationContext,
-) -> Result<DateTime<Utc>, Rejection> {
-    let time = time_field(obj)?;
+/// Rules of `time` (an RFC 3339 time every output format holds, `fields::time_field`)
+/// against the receiver: not too far ahead of its clock, and not before
+/// the last accepted set's (nor equal to it, outside replays).
+pub(super) fn check_time(time: DateTime<Utc>, ctx: &ValidationContext) -> Result<(), Rejection> {
     check_not_ahead(time, ctx.max_future)?;
-    check_after_last(time, ctx)?;
-    Ok(time)
+    check_after_last(time, ctx)
 }
 
 /// Rule: live, `time` is at most the allowed margin ahead of the receiver's clock.
