@@ -200,7 +200,7 @@ impl EigenSolver for DenseEigen {
         // the Rayleigh–Ritz steps that follow extract its best pairs from the same subspace
         // (the span, hence the result, is that of a Rayleigh–Ritz at every step, at a
         // fraction of the cost).
-        let Some(mphi) = plain_steps(&mut solve, model.mass() * &block.x) else {
+        let Some(mphi) = plain_steps(&mut solve, super::rows::mass_product(model, &block.x)) else {
             return Ok(None);
         };
         let mut residual = vec![f64::INFINITY; n_modes];
