@@ -170,14 +170,8 @@ impl Nelson {
     ) -> Result<(), ModalError> {
         let p = model.n_params();
         let order = super::reordered(model)?;
-        // `kp`: the pinned component in the reordered numbering.
-        let k = pinned_component(phi);
-        let kp = order.inv[k];
-        self.pin_shifted(model, order, theta, lambda, kp);
-        self.right_hand_sides(model, order, phi, kp, dlambda);
-        let ldlt_ok = self.solve_ldlt(order);
-        // The solutions v_l, back in the model's numbering (in `dphi`).
-        if ldlt_ok {
+        if self.solve_pinned(model, order, theta, lambda, phi, dlambda) {
+            // The solutions v_l, back in the model's numbering (in `dphi`).
             for l in 0..p {
                 order.unpermute(
                     col_slice(self.rhs.as_ref(), l),
@@ -186,9 +180,82 @@ impl Nelson {
             }
         } else {
             self.lu_fallbacks += 1;
-            self.solve_lu(model, theta, lambda, k, dphi.as_mut())?;
+            self.solve_lu(model, theta, lambda, pinned_component(phi), dphi.as_mut())?;
         }
         mass_normalize(&self.m_phi, phi, dphi, p, mode)
+    }
+
+    /// [`Nelson::derivatives`] on some rows only: `dphi_rows[r, l] = ∂φ_{rows[r]}/∂θ_l`
+    /// (`rows` in the model's numbering), the same values bit for bit. A tracker needs ∂φ
+    /// at its channels only, so the other rows are never formed: `c_l = −φᵀ M v_l` is
+    /// summed in the same order straight from the solutions in the reordered numbering.
+    #[allow(clippy::too_many_arguments)] // those of `derivatives`, and the rows
+    pub fn derivatives_on_rows(
+        &mut self,
+        model: &Model,
+        theta: &[f64],
+        mode: usize,
+        lambda: f64,
+        phi: &[f64],
+        dlambda: &mut [f64],
+        rows: &[usize],
+        mut dphi_rows: MatMut<'_, f64>,
+    ) -> Result<(), ModalError> {
+        let p = model.n_params();
+        let order = super::reordered(model)?;
+        if !self.solve_pinned(model, order, theta, lambda, phi, dlambda) {
+            // The fallback (rare): every row, then the wanted ones.
+            let mut dphi = Mat::zeros(model.n_dof(), p);
+            self.derivatives(model, theta, mode, lambda, phi, dlambda, dphi.as_mut())?;
+            for l in 0..p {
+                for (r, &i) in rows.iter().enumerate() {
+                    dphi_rows[(r, l)] = dphi[(i, l)];
+                }
+            }
+            return Ok(());
+        }
+        let inv = &order.inv;
+        for l in 0..p {
+            let v = col_slice(self.rhs.as_ref(), l);
+            // As in `mass_normalize`: c_l = −φᵀ M v_l over the model's numbering.
+            let c: f64 = -self
+                .m_phi
+                .iter()
+                .zip(inv)
+                .map(|(m, &new)| m * v[new])
+                .sum::<f64>();
+            // A non-finite solution makes c_l non-finite (0 · ∞ is NaN).
+            if !c.is_finite() {
+                return Err(ModalError::RepeatedEigenvalue { mode });
+            }
+            for (r, &i) in rows.iter().enumerate() {
+                let d = v[inv[i]] + c * phi[i];
+                if !d.is_finite() {
+                    return Err(ModalError::RepeatedEigenvalue { mode });
+                }
+                dphi_rows[(r, l)] = d;
+            }
+        }
+        Ok(())
+    }
+
+    /// The pinned `K − λM`, the right-hand sides (and `∂λ` into `dlambda`) and their
+    /// `LDLᵀ` solve (in `self.rhs`, reordered numbering): whether that solve holds (else
+    /// the LU fallback must be used).
+    fn solve_pinned(
+        &mut self,
+        model: &Model,
+        order: &Reordered,
+        theta: &[f64],
+        lambda: f64,
+        phi: &[f64],
+        dlambda: &mut [f64],
+    ) -> bool {
+        // `kp`: the pinned component in the reordered numbering.
+        let kp = order.inv[pinned_component(phi)];
+        self.pin_shifted(model, order, theta, lambda, kp);
+        self.right_hand_sides(model, order, phi, kp, dlambda);
+        self.solve_ldlt(order)
     }
 
     /// `A = K(θ) − λM` into `self.values`, row and column `kp` (reordered numbering)
@@ -441,6 +508,66 @@ fn backward_error(
 mod tests {
     use super::*;
     use crate::core::modal::{DenseEigen, EigenSolver};
+
+    /// `derivatives_on_rows` gives the rows of `derivatives`, bit for bit, and the same
+    /// `∂λ` (lab frame, θ away from nominal, modes 1, 5 and 9, rows of the channels and a
+    /// few others in any order).
+    #[test]
+    fn derivatives_on_rows_are_those_of_the_full_derivatives() {
+        let model = crate::core::model::lab_frame();
+        let theta: Vec<f64> = (0..model.n_params())
+            .map(|l| 0.7 + 0.05 * l as f64)
+            .collect();
+        let eig = DenseEigen::new(&model)
+            .unwrap()
+            .solve(&model, &theta, 9)
+            .unwrap();
+        let (n, p) = (model.n_dof(), model.n_params());
+        let rows = [n - 1, 0, 17, 3, 64, 17];
+        let mut nelson = Nelson::new(&model).unwrap();
+        for mode in [0, 4, 8] {
+            let phi: Vec<f64> = (0..n).map(|i| eig.phi[(i, mode)]).collect();
+            let (mut dl_full, mut dl_rows) = (vec![0.0; p], vec![0.0; p]);
+            let mut dphi = Mat::zeros(n, p);
+            let mut dphi_rows = Mat::zeros(rows.len(), p);
+            let lambda = eig.lambda[mode];
+            nelson
+                .derivatives(
+                    &model,
+                    &theta,
+                    mode + 1,
+                    lambda,
+                    &phi,
+                    &mut dl_full,
+                    dphi.as_mut(),
+                )
+                .unwrap();
+            nelson
+                .derivatives_on_rows(
+                    &model,
+                    &theta,
+                    mode + 1,
+                    lambda,
+                    &phi,
+                    &mut dl_rows,
+                    &rows,
+                    dphi_rows.as_mut(),
+                )
+                .unwrap();
+            assert_eq!(dl_full, dl_rows, "∂λ of mode {}", mode + 1);
+            for l in 0..p {
+                for (r, &i) in rows.iter().enumerate() {
+                    assert_eq!(
+                        dphi_rows[(r, l)].to_bits(),
+                        dphi[(i, l)].to_bits(),
+                        "mode {}, θ{}, DOF {i}",
+                        mode + 1,
+                        l + 1
+                    );
+                }
+            }
+        }
+    }
 
     /// The `LU` fallback solves the same pinned system as the `LDLᵀ` (lab frame, θ away
     /// from nominal, modes 1, 4 and 9): both derivatives agree to 1e-9 of the largest

@@ -7,6 +7,8 @@
 //! differentiates the residual that is minimized, including `c_m(θ)`:
 //! `∂(c D φ) = c D ∂φ + (∂c) D φ`, `∂c = (ψ̂ − 2c Dφ)ᵀ D ∂φ / ‖Dφ‖²`.
 
+use std::sync::atomic::{AtomicUsize, Ordering};
+
 use faer::Mat;
 
 use super::data::{MeasuredData, TargetMode, TargetShape};
@@ -93,7 +95,7 @@ pub struct Evaluator {
 type Sensitivity = (Vec<f64>, Mat<f64>);
 
 /// One share's sensitivities: each model mode (0-based) with its [`Sensitivity`].
-type ShareResult = Result<Vec<(usize, Sensitivity)>, ModalError>;
+type ModeResult = Result<Sensitivity, ModalError>;
 
 /// Number of model modes searched for pairing partners: twice the measured count, and at
 /// least ten more (the paper's Fig. 13 pairs measured mode 9 with model mode 13).
@@ -245,7 +247,7 @@ impl Evaluator {
             Some((t, c)) if t == ev.theta && c.len() == ev.eig.lambda.len() => c,
             _ => vec![None; ev.eig.lambda.len()],
         };
-        // The distinct paired modes not yet differentiated, dealt round the workspaces.
+        // The distinct paired modes not yet differentiated, dealt to the workspaces.
         let mut todo: Vec<usize> = ev
             .pairing
             .iter()
@@ -254,11 +256,8 @@ impl Evaluator {
             .collect();
         todo.sort_unstable();
         todo.dedup();
-        let done = self.differentiate(model, ev, &todo);
-        for share in done {
-            for (k, sens) in share? {
-                cache[k] = Some(sens);
-            }
+        for (k, sens) in todo.iter().zip(self.differentiate(model, ev, &todo)) {
+            cache[*k] = Some(sens?);
         }
         Ok(self
             .last_sensitivities
@@ -267,39 +266,40 @@ impl Evaluator {
             .as_slice())
     }
 
-    /// Nelson's method (paper (18)–(19)) for the model modes `todo` of `ev`, dealt round the
-    /// workspaces: this thread takes the first share, the helper threads the others (all on
-    /// this thread without helpers or with one share). One result per share, in share order.
-    fn differentiate(
-        &mut self,
-        model: &Model,
-        ev: &Evaluation,
-        todo: &[usize],
-    ) -> Vec<ShareResult> {
-        let shares = self.nelson.len().min(todo.len()).max(1);
-        let share =
-            |t: usize| -> Vec<usize> { todo.iter().copied().skip(t).step_by(shares).collect() };
+    /// Nelson's method (paper (18)–(19)) for the model modes `todo` of `ev`: one result
+    /// per mode, in the order of `todo`. The modes are dealt one at a time to whichever
+    /// workspace is free: this thread starts at once and the helper threads join when they
+    /// wake, so a helper that starts late costs at most the mode it is on (each mode's
+    /// result does not depend on the workspace that computes it).
+    fn differentiate(&mut self, model: &Model, ev: &Evaluation, todo: &[usize]) -> Vec<ModeResult> {
+        let next = AtomicUsize::new(0);
+        let deal = |ws: &mut NelsonWorkspace| -> Vec<(usize, ModeResult)> {
+            std::iter::from_fn(|| {
+                let i = next.fetch_add(1, Ordering::Relaxed);
+                todo.get(i).map(|&k| (i, ws.mode(model, ev, k)))
+            })
+            .collect()
+        };
+        let workers = self.nelson.len().min(todo.len()).max(1);
+        let (first, rest) = self.nelson[..workers]
+            .split_first_mut()
+            .expect("at least one workspace");
+        let mut dealt: Vec<Vec<(usize, ModeResult)>> = (0..workers).map(|_| Vec::new()).collect();
+        let (mine, theirs) = dealt.split_first_mut().expect("at least one worker");
         match crate::core::helpers() {
-            Some(pool) if shares > 1 => {
-                // This thread takes the first share, the helpers the others.
-                let (first, rest) = self.nelson[..shares]
-                    .split_first_mut()
-                    .expect("at least one workspace");
-                let mut out: Vec<Option<Result<_, _>>> = (0..shares).map(|_| None).collect();
-                let (out_first, out_rest) = out.split_first_mut().expect("shares > 1");
-                pool.in_place_scope(|scope| {
-                    for (t, (ws, slot)) in rest.iter_mut().zip(out_rest.iter_mut()).enumerate() {
-                        let mine = share(t + 1);
-                        scope.spawn(move |_| *slot = Some(ws.modes(model, ev, &mine)));
-                    }
-                    *out_first = Some(first.modes(model, ev, &share(0)));
-                });
-                out.into_iter()
-                    .map(|r| r.expect("every share ran"))
-                    .collect()
-            }
-            _ => vec![self.nelson[0].modes(model, ev, todo)],
+            Some(pool) if workers > 1 => pool.in_place_scope(|scope| {
+                for (ws, slot) in rest.iter_mut().zip(theirs.iter_mut()) {
+                    let deal = &deal;
+                    scope.spawn(move |_| *slot = deal(ws));
+                }
+                *mine = deal(first);
+            }),
+            _ => *mine = deal(first),
         }
+        let mut results: Vec<(usize, ModeResult)> = dealt.into_iter().flatten().collect();
+        results.sort_unstable_by_key(|&(i, _)| i);
+        debug_assert_eq!(results.len(), todo.len());
+        results.into_iter().map(|(_, r)| r).collect()
     }
 }
 
@@ -369,53 +369,65 @@ fn shape_rows(jac: &mut Mat<f64>, row: usize, s: &TargetShape, c: f64, dch: &Mat
 /// One thread's Nelson workspace and buffers.
 struct NelsonWorkspace {
     nelson: Nelson,
-    dphi: Mat<f64>,
+    /// The DOFs the channels read (ascending, each once), and per channel its terms as
+    /// (position in `rows`, weight), in the channel's order.
+    rows: Vec<usize>,
+    terms: Vec<Vec<(usize, f64)>>,
+    /// ∂φ on `rows`.
+    dphi_rows: Mat<f64>,
     dlambda: Vec<f64>,
     phi: Vec<f64>,
 }
 
 impl NelsonWorkspace {
     fn new(model: &Model, k_theta: SharedStiffness) -> Result<Self, ModalError> {
+        let channels = model.channels();
+        let mut rows: Vec<usize> = channels
+            .iter()
+            .flat_map(|ch| ch.dofs.iter().map(|&(i, _)| i))
+            .collect();
+        rows.sort_unstable();
+        rows.dedup();
+        let terms = channels
+            .iter()
+            .map(|ch| {
+                let at = |i: usize| rows.binary_search(&i).expect("every channel DOF is a row");
+                ch.dofs.iter().map(|&(i, w)| (at(i), w)).collect()
+            })
+            .collect();
         Ok(Self {
             nelson: Nelson::sharing(model, k_theta)?,
-            dphi: Mat::zeros(model.n_dof(), model.n_params()),
+            dphi_rows: Mat::zeros(rows.len(), model.n_params()),
+            rows,
+            terms,
             dlambda: vec![0.0; model.n_params()],
             phi: vec![0.0; model.n_dof()],
         })
     }
 
-    /// ∂λ and ∂φ at every channel of each model mode in `modes` (0-based) of `ev`.
-    fn modes(
-        &mut self,
-        model: &Model,
-        ev: &Evaluation,
-        modes: &[usize],
-    ) -> Result<Vec<(usize, Sensitivity)>, ModalError> {
-        let channels = model.channels();
+    /// ∂λ and ∂φ at every channel of the model mode `k` (0-based) of `ev`.
+    fn mode(&mut self, model: &Model, ev: &Evaluation, k: usize) -> ModeResult {
         let p = model.n_params();
-        let mut out = Vec::with_capacity(modes.len());
-        for &k in modes {
-            for (i, v) in self.phi.iter_mut().enumerate() {
-                *v = ev.eig.phi[(i, k)];
-            }
-            self.nelson.derivatives(
-                model,
-                &ev.theta,
-                k + 1,
-                ev.eig.lambda[k],
-                &self.phi,
-                &mut self.dlambda,
-                self.dphi.as_mut(),
-            )?;
-            let mut dch = Mat::zeros(channels.len(), p);
-            for (c, ch) in channels.iter().enumerate() {
-                for l in 0..p {
-                    dch[(c, l)] = ch.dofs.iter().map(|&(i, w)| w * self.dphi[(i, l)]).sum();
-                }
-            }
-            out.push((k, (self.dlambda.clone(), dch)));
+        for (i, v) in self.phi.iter_mut().enumerate() {
+            *v = ev.eig.phi[(i, k)];
         }
-        Ok(out)
+        self.nelson.derivatives_on_rows(
+            model,
+            &ev.theta,
+            k + 1,
+            ev.eig.lambda[k],
+            &self.phi,
+            &mut self.dlambda,
+            &self.rows,
+            self.dphi_rows.as_mut(),
+        )?;
+        let mut dch = Mat::zeros(self.terms.len(), p);
+        for (c, terms) in self.terms.iter().enumerate() {
+            for l in 0..p {
+                dch[(c, l)] = terms.iter().map(|&(r, w)| w * self.dphi_rows[(r, l)]).sum();
+            }
+        }
+        Ok((self.dlambda.clone(), dch))
     }
 }
 
