@@ -183,9 +183,12 @@ fn solve_and_mass_steps(
     (x, mx)
 }
 
-/// `n` rows of `q` values each, row `i` at `data[i q .. (i + 1) q]`.
+/// `n` rows of `q` values each, row `i` at `data[i q .. (i + 1) q]`: `width` vectors,
+/// padded with zero columns to a multiple of four, so that the row updates run in whole
+/// AVX2 lanes (a padding column stays zero: every update of it adds a product with zero).
 pub(crate) struct Rows {
     q: usize,
+    width: usize,
     data: Vec<f64>,
 }
 
@@ -194,16 +197,28 @@ impl Rows {
     /// order when `order` is `None`).
     pub(crate) fn gather(a: MatRef<'_, f64>, order: Option<&[usize]>) -> Self {
         let (n, q) = (a.nrows(), a.ncols());
-        let mut data = vec![0.0; n * q];
-        for c in 0..q {
-            let col = a.col(c);
-            let rows = data.chunks_exact_mut(q).map(|row| &mut row[c]);
-            match order {
-                Some(o) => rows.zip(o).for_each(|(v, &i)| *v = col[i]),
-                None => rows.zip(col.iter()).for_each(|(v, x)| *v = *x),
-            }
+        // Row after row into the capacity, each from the columns' slices (filling a zeroed
+        // block column by column cost four times as much).
+        let cols: Vec<&[f64]> = (0..q)
+            .map(|c| {
+                a.col(c)
+                    .try_as_col_major()
+                    .expect("the blocks' columns are contiguous")
+                    .as_slice()
+            })
+            .collect();
+        let width = q;
+        let q = width.next_multiple_of(4);
+        let mut data = Vec::with_capacity(n * q);
+        let mut push_row = |i: usize| {
+            data.extend(cols.iter().map(|col| col[i]));
+            data.extend(std::iter::repeat_n(0.0, q - width));
+        };
+        match order {
+            Some(o) => o.iter().for_each(|&i| push_row(i)),
+            None => (0..n).for_each(push_row),
         }
-        Self { q, data }
+        Self { q, width, data }
     }
 
     /// These rows permuted: row `i` of the result is row `order[i]` of these.
@@ -214,14 +229,18 @@ impl Rows {
         for &o in order {
             data.extend_from_slice(&self.data[o * q..(o + 1) * q]);
         }
-        Self { q, data }
+        Self {
+            q,
+            width: self.width,
+            data,
+        }
     }
 
     /// As a column-major matrix.
     pub(crate) fn to_mat(&self) -> Mat<f64> {
         let q = self.q;
         let n = self.data.len() / q.max(1);
-        Mat::from_fn(n, q, |i, c| self.data[i * q + c])
+        Mat::from_fn(n, self.width, |i, c| self.data[i * q + c])
     }
 
     /// Row `i`.
@@ -319,7 +338,7 @@ impl Rows {
     /// Writes these rows into `a` (as many rows and columns).
     fn scatter_into(&self, mut a: MatMut<'_, f64>) {
         let q = self.q;
-        for c in 0..q {
+        for c in 0..self.width {
             let mut col = a.as_mut().col_mut(c);
             for i in 0..col.nrows() {
                 col[i] = self.data[i * q + c];
@@ -340,7 +359,11 @@ impl Rows {
                 }
             }
         }
-        Self { q, data }
+        Self {
+            q,
+            width: self.width,
+            data,
+        }
     }
 }
 
