@@ -79,8 +79,8 @@ pub const SMALL_MODEL_THREADS: usize = 2;
 pub struct Evaluator {
     eigen: Box<dyn EigenSolver + Send>,
     /// Nelson workspaces, one per core (at most [`SMALL_MODEL_THREADS`] for a model the
-    /// dense solver takes, four for a larger one), each differentiating a share of the
-    /// paired modes on its own thread.
+    /// dense solver takes, four for a larger one), each on its own thread taking the next
+    /// paired mode not yet differentiated ([`Evaluator::differentiate`]).
     nelson: Vec<NelsonWorkspace>,
     /// θ, candidate count and eigenpairs of the last solve.
     last_eig: Option<(Vec<f64>, usize, EigenPairs)>,
