@@ -204,9 +204,11 @@ impl Nelson {
         let p = model.n_params();
         let order = super::reordered(model)?;
         if !self.solve_pinned(model, order, theta, lambda, phi, dlambda) {
-            // The fallback (rare): every row, then the wanted ones.
+            // The fallback (rare): the LU on every row, then the wanted ones.
+            self.lu_fallbacks += 1;
             let mut dphi = Mat::zeros(model.n_dof(), p);
-            self.derivatives(model, theta, mode, lambda, phi, dlambda, dphi.as_mut())?;
+            self.solve_lu(model, theta, lambda, pinned_component(phi), dphi.as_mut())?;
+            mass_normalize(&self.m_phi, phi, dphi.as_mut(), p, mode)?;
             for l in 0..p {
                 for (r, &i) in rows.iter().enumerate() {
                     dphi_rows[(r, l)] = dphi[(i, l)];
@@ -509,19 +511,25 @@ mod tests {
     use super::*;
     use crate::core::modal::{DenseEigen, EigenSolver};
 
-    /// `derivatives_on_rows` gives the rows of `derivatives`, bit for bit, and the same
-    /// `∂λ` (lab frame, θ away from nominal, modes 1, 5 and 9, rows of the channels and a
-    /// few others in any order).
-    #[test]
-    fn derivatives_on_rows_are_those_of_the_full_derivatives() {
+    /// The lab frame at θ_l = `base + step · l` and its lowest 9 modes (cold solve).
+    fn lab_frame_modes(base: f64, step: f64) -> (Model, Vec<f64>, crate::core::modal::EigenPairs) {
         let model = crate::core::model::lab_frame();
         let theta: Vec<f64> = (0..model.n_params())
-            .map(|l| 0.7 + 0.05 * l as f64)
+            .map(|l| base + step * l as f64)
             .collect();
         let eig = DenseEigen::new(&model)
             .unwrap()
             .solve(&model, &theta, 9)
             .unwrap();
+        (model, theta, eig)
+    }
+
+    /// `derivatives_on_rows` gives the rows of `derivatives`, bit for bit, and the same
+    /// `∂λ` (lab frame, θ away from nominal, modes 1, 5 and 9, rows of the channels and a
+    /// few others in any order).
+    #[test]
+    fn derivatives_on_rows_are_those_of_the_full_derivatives() {
+        let (model, theta, eig) = lab_frame_modes(0.7, 0.05);
         let (n, p) = (model.n_dof(), model.n_params());
         let rows = [n - 1, 0, 17, 3, 64, 17];
         let mut nelson = Nelson::new(&model).unwrap();
@@ -576,14 +584,7 @@ mod tests {
     /// back.
     #[test]
     fn lu_fallback_matches_the_ldlt_solve() {
-        let model = crate::core::model::lab_frame();
-        let theta: Vec<f64> = (0..model.n_params())
-            .map(|l| 0.6 + 0.1 * l as f64)
-            .collect();
-        let eig = DenseEigen::new(&model)
-            .unwrap()
-            .solve(&model, &theta, 9)
-            .unwrap();
+        let (model, theta, eig) = lab_frame_modes(0.6, 0.1);
         let (n, p) = (model.n_dof(), model.n_params());
         let mut nelson = Nelson::new(&model).unwrap();
         for mode in [0, 3, 8] {
