@@ -14,8 +14,8 @@
 //!    neighbour) has no first-order column; it is scored by the same reduction at a few
 //!    finite values of `u`, θ corrected to first order (`screen::probe`).
 //! 3. **Refit** the best few with the full nonlinear update: ε is minimized over the effect's
-//!    value with θ refitted at every value (the profile `ε(u) = min_θ ε(θ, u)`, by a bracketed
-//!    golden-section search), and its standard deviation is the Laplace one, `σ_u² = 2/ε''`
+//!    value with θ refitted at every value (the profile `ε(u) = min_θ ε(θ, u)`, by a downhill
+//!    bracket and Brent's search), and its standard deviation is the Laplace one, `σ_u² = 2/ε''`
 //!    (ε is −2 log L up to a constant).
 //! 4. **Decide** by a likelihood-ratio test: `Λ = ε_before − ε_after` is χ²₁ under "no missing
 //!    effect"; the best refit is named when Λ exceeds the χ²₁ quantile at family-wise level α

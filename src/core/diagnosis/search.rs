@@ -2,7 +2,7 @@
 //! Brent's method (golden sections with parabolic steps).
 
 /// Minimizes `f` over `t` from `t0` with initial step `d`: a downhill bracket, then a
-/// golden-section search to `tol`. Returns the minimizer and the minimum.
+/// Brent search to `tol`. Returns the minimizer and the minimum.
 pub(super) fn minimize_1d(mut f: impl FnMut(f64) -> f64, t0: f64, d: f64, tol: f64) -> (f64, f64) {
     const GOLD: f64 = 1.618_033_988_749_895;
     let f0 = f(t0);
@@ -11,7 +11,7 @@ pub(super) fn minimize_1d(mut f: impl FnMut(f64) -> f64, t0: f64, d: f64, tol: f
     if fb > fa {
         let (c, fc) = (t0 - d, f(t0 - d));
         if fc >= fa {
-            return golden(&mut f, t0 - d, t0 + d, (t0, f0), tol);
+            return brent(&mut f, t0 - d, t0 + d, (t0, f0), tol);
         }
         (b, fb) = (c, fc);
     }
@@ -21,7 +21,7 @@ pub(super) fn minimize_1d(mut f: impl FnMut(f64) -> f64, t0: f64, d: f64, tol: f
         let fc = f(c);
         if fc >= fb {
             let (lo, hi) = if a < c { (a, c) } else { (c, a) };
-            return golden(&mut f, lo, hi, (b, fb), tol);
+            return brent(&mut f, lo, hi, (b, fb), tol);
         }
         (a, fa) = (b, fb);
         (b, fb) = (c, fc);
@@ -33,7 +33,7 @@ pub(super) fn minimize_1d(mut f: impl FnMut(f64) -> f64, t0: f64, d: f64, tol: f
 /// Brent's minimization on [lo, hi] from a known interior point (golden sections with
 /// parabolic steps; R. P. Brent, *Algorithms for Minimization without Derivatives*, 1973,
 /// ch. 5): a smooth minimum in about 10 evaluations instead of golden section's 25.
-pub(super) fn golden(
+pub(super) fn brent(
     f: &mut impl FnMut(f64) -> f64,
     mut lo: f64,
     mut hi: f64,
