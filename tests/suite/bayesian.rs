@@ -470,7 +470,7 @@ fn sparse_phi_substeps_at_an_eigenvalue_of_the_model() {
 /// error the misfit sees at small σ_c): the rule is met, the σ_c found agrees with the
 /// crossing a 49-point sweep of the same range interpolates within 10 % (the sweep's own
 /// linear interpolation between points 1.47× apart is not closer), in fewer MAP solves
-/// than bisection of the range to the same 5 % (11): 9, the root lying six decades above
+/// than bisection of the range to the same 5 % (11): 8, the root lying six decades above
 /// the bottom of the range.
 #[test]
 fn automatic_sigma_c_meets_the_discrepancy_rule_in_few_solves() {

@@ -67,10 +67,15 @@ impl NewtonStop {
         decrement_tol: NEWTON_DECREMENT_TOL,
         stall_probe: false,
     };
-    /// A cold start of the continuation.
-    const COLD: Self = Self {
-        stall_probe: true,
-        ..Self::FINAL
+    /// A trial of the automatic σ_c: the misfit to well within the rule's tolerance
+    /// ([`super::AUTO_MISFIT_TOL`], 1 % of ν), not to machine precision; the next trial and
+    /// the final MAP start from its `(λ, θ)` and converge fully. On the four-bay frame
+    /// (seed 1) the six trials' misfits equal those of full-precision trials to the 0.1
+    /// printed, and the lab frame's bottom trial's misfit moved by 6e-6.
+    pub(super) const TRIAL: Self = Self {
+        step_tol: STAGE_STEP_TOL,
+        decrement_tol: 1e-7,
+        stall_probe: false,
     };
     /// An intermediate warm stage of the continuation.
     const STAGE: Self = Self {
@@ -111,6 +116,8 @@ impl NewtonStop {
 /// σ_c and budgets, the stages so far and the iterations they used.
 struct Continuation {
     target: f64,
+    /// The stopping rule at the target σ_c.
+    last: NewtonStop,
     /// Iterations allowed to all stages together.
     max_iterations: usize,
     /// Iterations allowed to a warm-started stage.
@@ -211,9 +218,21 @@ impl BayesProblem {
         theta0: &[f64],
         max_iterations: usize,
     ) -> Result<BayesResult, BayesError> {
+        self.solve_newton_continued_to(theta0, max_iterations, NewtonStop::FINAL)
+    }
+
+    /// [`Self::solve_newton_continued`] with the stopping rule `last` at the target σ_c
+    /// (the stages above it keep theirs).
+    pub(super) fn solve_newton_continued_to(
+        &mut self,
+        theta0: &[f64],
+        max_iterations: usize,
+        last: NewtonStop,
+    ) -> Result<BayesResult, BayesError> {
         let target = self.sigma_c();
         let mut run = Continuation {
             target,
+            last,
             max_iterations,
             budget: CONTINUATION_STAGE_ITERATIONS.min(max_iterations),
             cold_budget: COLD_START_ITERATIONS.min(max_iterations),
@@ -221,7 +240,11 @@ impl BayesProblem {
             used: 0,
         };
         let lambda_hat = self.lambda_hat();
-        let direct = self.newton(&lambda_hat, theta0, run.cold_budget, NewtonStop::COLD)?;
+        let cold = NewtonStop {
+            stall_probe: true,
+            ..last
+        };
+        let direct = self.newton(&lambda_hat, theta0, run.cold_budget, cold)?;
         run.record(target, &direct);
         if direct.converged || run.cold_budget == max_iterations {
             // Converged, or the caller allowed no more than one stage.
@@ -293,7 +316,7 @@ impl BayesProblem {
             let stop = if next > target {
                 NewtonStop::STAGE
             } else {
-                NewtonStop::FINAL
+                run.last
             };
             // A stage that meets a point where the φ substep cannot be solved (see
             // `carry_on`) fails like one that does not converge.
@@ -333,21 +356,16 @@ impl BayesProblem {
         let target = run.target;
         self.inv_s2 = 1.0 / (target * target);
         let budget = run.max_iterations.saturating_sub(run.used);
-        let from_direct = |prob: &Self| {
-            prob.newton(
-                &direct.state.lambda,
-                &direct.state.theta,
-                budget,
-                NewtonStop::FINAL,
-            )
-        };
+        let last = run.last;
+        let from_direct =
+            |prob: &Self| prob.newton(&direct.state.lambda, &direct.state.theta, budget, last);
         let more = match failed {
             // A point that low can sit on an eigenvalue of the model to rounding (σ_c
             // small: the model equation nearly holds), where a large model's φ substep
             // cannot be solved (four-bay frame, seed 1, σ_c = 1): then, as before, from
             // the cold start.
             Some(r) if r.terms.total < direct.terms.total => self
-                .newton(&r.state.lambda, &r.state.theta, budget, NewtonStop::FINAL)
+                .newton(&r.state.lambda, &r.state.theta, budget, last)
                 .or_else(|_| from_direct(self))?,
             _ => from_direct(self)?,
         };

@@ -12,8 +12,10 @@
 //! and the bottom is taken; if it is still above ν at the top, the top is taken and the
 //! rule is reported as not met.
 
+use super::newton::NewtonStop;
 use super::{
-    BayesError, BayesProblem, BayesSettings, BayesSolver, ContinuationStage, ObjectiveTerms,
+    BayesError, BayesProblem, BayesResult, BayesSettings, BayesSolver, ContinuationStage,
+    ObjectiveTerms,
 };
 use crate::core::modal::ModalError;
 use crate::core::model::Model;
@@ -183,6 +185,8 @@ pub struct AutoSigma {
     /// θ of the MAP at the chosen σ_c, when a trial solved it there (the search's choice;
     /// not the sweep's, which is interpolated): the final solve starts from it.
     pub theta: Option<Vec<f64>>,
+    /// λ of that MAP, with `theta`.
+    pub lambda: Option<Vec<f64>>,
 }
 
 /// The discrepancy rule applied to a finished sweep (ascending σ_c): the first crossing of
@@ -201,6 +205,7 @@ pub fn discrepancy_choice(points: &[SweepPoint], target: f64) -> Option<AutoSigm
         met,
         trials: trials.clone(),
         theta: None,
+        lambda: None,
     };
     if first.1 <= target {
         return Some(done(first.0, first.1, true));
@@ -241,8 +246,9 @@ impl AutoSigma {
     /// reaching ν). It stops when the misfit is within
     /// [`AUTO_MISFIT_TOL`] of ν or the bracket is `rel_tol` wide in σ_c; the σ_c returned
     /// has its misfit at or below ν (the smallest such σ_c found), or within
-    /// [`AUTO_MISFIT_TOL`] above it. Each trial is one MAP solve warm-started from the θ
-    /// of the trial nearest in `ln σ_c`. `progress` hears of each trial as it starts
+    /// [`AUTO_MISFIT_TOL`] above it. Each trial is one MAP solve to the precision the
+    /// rule needs, warm-started from the `(λ, θ)` of the trial nearest in `ln σ_c`
+    /// ([`SigmaTrials::solve_trial`]). `progress` hears of each trial as it starts
     /// (`None`) and when it ends (its misfit), with the target ν: on a large model a trial
     /// takes seconds to a minute.
     pub fn search(
@@ -285,20 +291,20 @@ struct Bracket {
 }
 
 /// The trials of [`AutoSigma::search`]: each one MAP solve at a σ_c, warm-started from the
-/// solved trial nearest in `ln σ_c`, reported to `progress` as it starts and ends.
+/// solved trial nearest in `ln σ_c` (its `(λ, θ)`), reported to `progress` as it starts
+/// and ends.
 struct SigmaTrials<'a> {
     model: &'a Model,
     data: &'a MeasuredData,
     /// The sweep's settings without the alternating solver; `theta0` is the warm start.
     settings: SweepSettings,
-    evaluator: Evaluator,
     /// The χ² expectation ν the misfit is held to.
     target: f64,
     progress: &'a mut dyn FnMut(SigmaTrial),
     /// Every σ_c tried, with its misfit.
     trials: Vec<(f64, f64)>,
-    /// Solved trials: ln σ_c and θ, for the warm starts.
-    solved: Vec<(f64, Vec<f64>)>,
+    /// Solved trials: ln σ_c, λ and θ, for the warm starts.
+    solved: Vec<(f64, Vec<f64>, Vec<f64>)>,
 }
 
 impl<'a> SigmaTrials<'a> {
@@ -313,7 +319,6 @@ impl<'a> SigmaTrials<'a> {
         let trials = Vec::new();
         let mut s = settings.clone();
         s.alternating_max_iterations = None;
-        let evaluator = Evaluator::new(model)?;
         let target = {
             let prob = BayesProblem::new(
                 model,
@@ -330,7 +335,6 @@ impl<'a> SigmaTrials<'a> {
             model,
             data,
             settings: s,
-            evaluator,
             target,
             progress,
             trials,
@@ -359,24 +363,59 @@ impl<'a> SigmaTrials<'a> {
             target,
         };
         (self.progress)(trial(None));
-        if let Some((_, theta)) = self
+        let start = self
             .solved
             .iter()
             .min_by(|a, b| (a.0 - x).abs().total_cmp(&(b.0 - x).abs()))
-        {
-            self.settings.theta0 = theta.clone();
-        }
-        let p = point(
+            .map(|(_, lambda, theta)| (Some(lambda.clone()), theta.clone()))
+            .unwrap_or_else(|| (None, self.settings.theta0.clone()));
+        let r = self.solve_trial(sigma, start.0.as_deref(), &start.1)?;
+        let misfit = r.terms.measurement;
+        (self.progress)(trial(Some(misfit)));
+        self.solved.push((x, r.state.lambda, r.state.theta));
+        self.trials.push((sigma, misfit));
+        Ok(misfit)
+    }
+
+    /// The MAP at `sigma` to the precision the rule needs ([`NewtonStop::TRIAL`]): from
+    /// `(lambda0, theta0)` (a trial's MAP at a neighbouring σ_c) by plain Newton when
+    /// `lambda0` is given, and by the σ_c continuation from `theta0` (and `λ̂`) when there
+    /// is none or that did not converge (the lower `J_p` of the two then). Not from the
+    /// model's eigenvalues: there `K − λM` is singular to rounding and the φ substep of a
+    /// small σ_c cannot be solved (four-bay frame, σ_c = 1: its misfit ended at 31 ν).
+    fn solve_trial(
+        &self,
+        sigma: f64,
+        lambda0: Option<&[f64]>,
+        theta0: &[f64],
+    ) -> Result<BayesResult, SweepError> {
+        let s = &self.settings;
+        let mut prob = BayesProblem::new(
             self.model,
             self.data,
-            sigma,
-            &self.settings,
-            &mut self.evaluator,
+            &BayesSettings {
+                sigma_c: sigma,
+                prior_mean: s.prior_mean.clone(),
+                prior_std: s.prior_std.clone(),
+            },
         )?;
-        (self.progress)(trial(Some(p.terms.measurement)));
-        self.solved.push((x, p.theta.clone()));
-        self.trials.push((sigma, p.terms.measurement));
-        Ok(p.terms.measurement)
+        prob.set_bounds(LogBounds::new(self.model, s.bounds));
+        let max = s.newton_max_iterations;
+        let warm = match lambda0 {
+            Some(l0) => match prob.newton(l0, theta0, max, NewtonStop::TRIAL) {
+                Ok(r) if r.converged => return Ok(r),
+                Ok(r) => Some(r),
+                // A warm start on an eigenvalue of the model (a φ substep that cannot be
+                // solved): the continuation, as from no start.
+                Err(_) => None,
+            },
+            None => None,
+        };
+        let continued = prob.solve_newton_continued_to(theta0, max, NewtonStop::TRIAL)?;
+        Ok(match warm {
+            Some(w) if w.terms.total < continued.terms.total => w,
+            _ => continued,
+        })
     }
 
     /// Steps up from `lo0` (misfit `m_lo` above ν) by [`AUTO_BRACKET_STEP`], its square,
@@ -448,11 +487,14 @@ impl<'a> SigmaTrials<'a> {
     /// The search's outcome at `sigma` (`misfit`, `met`), with every trial and the θ of
     /// the trial solved at `sigma`, if any.
     fn choice(self, sigma: f64, misfit: f64, met: bool) -> AutoSigma {
-        let theta = self
+        let at = self
             .solved
-            .iter()
-            .find(|(x, _)| (x - sigma.ln()).abs() <= 1e-12)
-            .map(|(_, t)| t.clone());
+            .into_iter()
+            .find(|(x, _, _)| (x - sigma.ln()).abs() <= 1e-12);
+        let (lambda, theta) = match at {
+            Some((_, l, t)) => (Some(l), Some(t)),
+            None => (None, None),
+        };
         AutoSigma {
             sigma_c: sigma,
             target: self.target,
@@ -460,6 +502,7 @@ impl<'a> SigmaTrials<'a> {
             met,
             trials: self.trials,
             theta,
+            lambda,
         }
     }
 }

@@ -169,13 +169,7 @@ pub fn bayesian_update(
         prob.set_progress(f);
     }
     phase("solve");
-    // From the automatic choice's MAP at this σ_c when there is one (its full solve again
-    // from θ0 took another 15–100 s on the four-bay frame).
-    let start = auto
-        .as_ref()
-        .and_then(|a| a.theta.as_deref())
-        .unwrap_or(theta0);
-    let result = prob.solve(opts.solver, start, opts.max_iterations)?;
+    let result = final_map(&mut prob, auto.as_ref(), theta0, opts)?;
     let free = prob.threshold_free_covariance(&result.state);
     let tsvd = opts.tsvd.then(|| {
         phase("tsvd");
@@ -208,6 +202,26 @@ pub fn bayesian_update(
     })
 }
 
+/// The MAP at the chosen σ_c: from the automatic choice's trial there when there is one
+/// (Newton from its `(λ, θ)`; its full solve again from θ0 took another 15–100 s on the
+/// four-bay frame), by `opts.solver` from θ0 otherwise or if that does not converge.
+fn final_map(
+    prob: &mut BayesProblem,
+    auto: Option<&AutoSigma>,
+    theta0: &[f64],
+    opts: &BayesOptions,
+) -> Result<BayesResult, BayesError> {
+    let trial = auto.and_then(|a| Some((a.lambda.as_deref()?, a.theta.as_deref()?)));
+    if let (Some((lambda, theta)), BayesSolver::Newton) = (trial, opts.solver) {
+        let warm = prob.solve_newton_from(lambda, theta, opts.max_iterations)?;
+        if warm.converged {
+            return Ok(warm);
+        }
+    }
+    let start = trial.map_or(theta0, |(_, theta)| theta);
+    prob.solve(opts.solver, start, opts.max_iterations)
+}
+
 /// Stage I of the two-stage update (paper §4.2).
 pub struct StageOne {
     pub sigma_c: f64,
@@ -236,12 +250,12 @@ pub fn stage_one(
 ) -> Result<StageOne, WorkflowError> {
     let theta0 = coarse.nominal_theta();
     let (sigma_c, auto) = choose_sigma_c(coarse, data, opts.sigma, opts, &theta0, sigma_trial)?;
-    let start = auto
-        .as_ref()
-        .and_then(|a| a.theta.as_deref())
-        .unwrap_or(&theta0);
-    let result =
-        problem(coarse, data, sigma_c, opts)?.solve(opts.solver, start, opts.max_iterations)?;
+    let result = final_map(
+        &mut problem(coarse, data, sigma_c, opts)?,
+        auto.as_ref(),
+        &theta0,
+        opts,
+    )?;
     if !result.converged {
         return Err(WorkflowError::StageOneNotConverged {
             model: coarse.name.clone(),
