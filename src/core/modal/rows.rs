@@ -452,35 +452,10 @@ mod tests {
     /// for bit, on 17 right-hand sides and a diagonally heavy indefinite matrix.
     #[test]
     fn row_wise_ldlt_solve_is_faers_bit_for_bit() {
-        use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
         use faer::sparse::linalg::cholesky::LdltRef;
         let model = crate::core::model::lab_frame();
         let order = model.reordered().unwrap();
-        let mut values: Vec<f64> = (0..order.len())
-            .map(|p| ((p * 7919) % 101) as f64 - 50.0)
-            .collect();
-        for j in 0..order.lower.ncols() {
-            values[order.lower.col_ptr()[j]] = 1.0e4;
-        }
-        let a = SparseColMatRef::new(order.lower.as_ref(), &values);
-        let mut factor = vec![0.0; order.symbolic.len_val()];
-        let mut mem = MemBuffer::new(
-            order
-                .symbolic
-                .factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Default::default()),
-        );
-        order
-            .symbolic
-            .factorize_numeric_ldlt(
-                &mut factor,
-                a,
-                Side::Lower,
-                LdltRegularization::default(),
-                Par::Seq,
-                MemStack::new(&mut mem),
-                Default::default(),
-            )
-            .unwrap();
+        let (_, factor) = crate::core::modal::up_looking::tests::diag_heavy_nelson_ldlt(order);
         let n = model.n_dof();
         let b = Mat::from_fn(n, 17, |i, c| ((i * 13 + c * 5) % 11) as f64 - 5.0);
         let mut theirs = b.clone();

@@ -199,10 +199,43 @@ fn reaches(a_ptr: &[usize], a_row: &[usize], parent: &[usize]) -> (Vec<usize>, V
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use faer::Par;
     use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
+
+    /// A diagonally heavy indefinite matrix on Nelson's reordered pattern (lower side, no
+    /// permutation) and faer's `LDLᵀ` factor of it: `(values, factor)`.
+    pub(crate) fn diag_heavy_nelson_ldlt(
+        order: &crate::core::model::Reordered,
+    ) -> (Vec<f64>, Vec<f64>) {
+        let mut values: Vec<f64> = (0..order.len())
+            .map(|p| ((p * 7919) % 101) as f64 - 50.0)
+            .collect();
+        for j in 0..order.lower.ncols() {
+            values[order.lower.col_ptr()[j]] = 1.0e4;
+        }
+        let a = SparseColMatRef::new(order.lower.as_ref(), &values);
+        let mut factor = vec![0.0; order.symbolic.len_val()];
+        let mut mem = MemBuffer::new(
+            order
+                .symbolic
+                .factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Default::default()),
+        );
+        order
+            .symbolic
+            .factorize_numeric_ldlt(
+                &mut factor,
+                a,
+                Side::Lower,
+                LdltRegularization::default(),
+                Par::Seq,
+                MemStack::new(&mut mem),
+                Default::default(),
+            )
+            .unwrap();
+        (values, factor)
+    }
 
     /// On the lab frame's union pattern (AMD-permuted, lower side) and on Nelson's
     /// reordered pattern (no permutation): `K` by `LLᵀ`, `K − σM` (indefinite) by `LDLᵀ`;
@@ -271,32 +304,7 @@ mod tests {
         // Nelson's pattern: reordered already, no permutation, lower side.
         let order = model.reordered().unwrap();
         let mut ours = UpLooking::new(&order.symbolic, order.lower.as_ref(), Side::Lower).unwrap();
-        let values: Vec<f64> = (0..order.len())
-            .map(|p| ((p * 7919) % 101) as f64 - 50.0)
-            .collect();
-        let mut diag_heavy = values.clone();
-        for j in 0..order.lower.ncols() {
-            diag_heavy[order.lower.col_ptr()[j]] = 1.0e4;
-        }
-        let a = SparseColMatRef::new(order.lower.as_ref(), &diag_heavy);
-        let mut expected = vec![0.0; order.symbolic.len_val()];
-        let mut mem = MemBuffer::new(
-            order
-                .symbolic
-                .factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Default::default()),
-        );
-        order
-            .symbolic
-            .factorize_numeric_ldlt(
-                &mut expected,
-                a,
-                Side::Lower,
-                LdltRegularization::default(),
-                Par::Seq,
-                MemStack::new(&mut mem),
-                Default::default(),
-            )
-            .unwrap();
+        let (diag_heavy, expected) = diag_heavy_nelson_ldlt(order);
         let mut got = vec![0.0; order.symbolic.len_val()];
         assert!(ours.factorize(&diag_heavy, Kind::Ldlt, &mut got));
         assert!(
