@@ -517,5 +517,10 @@ fn automatic_sigma_c_meets_the_discrepancy_rule_in_few_solves() {
         auto.sigma_c,
         fine.sigma_c
     );
-    assert!(auto.trials.len() < 11, "{} solves", auto.trials.len());
+    assert!(
+        auto.trials.len() < 11,
+        "{} solves: {:?}",
+        auto.trials.len(),
+        auto.trials
+    );
 }

@@ -51,8 +51,9 @@ pub use newton::{
     STALL_PROBE_ITERATIONS, TRUST_ACCEPT, TRUST_INITIAL_RADIUS, TRUST_MAX_RADIUS, TRUST_MIN_RADIUS,
 };
 pub use sweep::{
-    AUTO_BRACKET_STEP, AUTO_MISFIT_TOL, AlternatingRun, AutoSigma, SigmaTrial, SweepError,
-    SweepPoint, SweepSettings, discrepancy_choice, log_grid, sweep_sigma,
+    AUTO_BRACKET_STEP, AUTO_BRACKET_STEP_MAX, AUTO_FIRST_TRIAL, AUTO_LOPSIDED, AUTO_MISFIT_TOL,
+    AlternatingRun, AutoSigma, SigmaTrial, SweepError, SweepPoint, SweepSettings,
+    discrepancy_choice, log_grid, sweep_sigma,
 };
 pub use workflow::{
     AUTO_SIGMA_TOL, AUTO_TRIAL_ITERATIONS, BayesOptions, BayesUpdate, Observers, SigmaChoice,

@@ -221,9 +221,35 @@ pub fn discrepancy_choice(points: &[SweepPoint], target: f64) -> Option<AutoSigm
     Some(done(last.0, last.1, false))
 }
 
-/// The first factor by which the automatic σ_c search steps up from the bottom of its
-/// range until the misfit falls below ν (each further step squares it).
+/// The automatic σ_c search's first trial, as a factor of the bottom of its range. The
+/// bottom is the costliest MAP of the range (a small σ_c holds λ and φ to the model's
+/// eigenpairs: on the four-bay frame it stalled for 50–126 Newton iterations, 100–174 s,
+/// and ended far above ν) and, when the model is wrong, only says that the root lies
+/// higher. Two decades up, a model that needs no allowance costs two more trials on the
+/// way down (the lab frame: 100, 10, 1), and the four-bay frame's root (47) is bracketed
+/// by the first step down.
+pub const AUTO_FIRST_TRIAL: f64 = 100.0;
+
+/// The first factor by which the automatic σ_c search steps up from its first trial until
+/// the misfit falls below ν (each further step squares it, up to
+/// [`AUTO_BRACKET_STEP_MAX`]), and the factor by which it steps down while the misfit is
+/// below ν.
 pub const AUTO_BRACKET_STEP: f64 = 10.0;
+
+/// The largest step up of the automatic σ_c search. Squaring without a cap overshot: on
+/// the cantilever (root at 1.84e4) the steps from 1 reached 1e3 and then the top of the
+/// range, 1e6, where the misfit was 5 orders of magnitude below ν, and the lopsided
+/// bracket took 9 more trials to refine (13 in all); with steps of at most ×100 it ends at
+/// 1e5, within a decade of the root.
+pub const AUTO_BRACKET_STEP_MAX: f64 = 100.0;
+
+/// The refinement of the automatic σ_c bisects instead of taking the secant when one end
+/// of the bracket has `|ln(misfit/ν)|` over this many times the other's. Four-bay seed 3
+/// jumps from 56 ν to 0.96 ν (a ratio of 98) and is flat above, where the secant crept by
+/// tenths of the bracket; the cantilever's smooth curve has a ratio of 12 at a bracket
+/// whose secant lands within 0.2 % of the root, and a guard at 10 bisected there instead
+/// (three more trials).
+pub const AUTO_LOPSIDED: f64 = 30.0;
 
 /// The misfit is taken as on target when within this fraction of ν: the χ² target itself
 /// spreads by `√(2/ν)` (7 % for the four-bay frame's ν = 392, 5 % for ν ≈ 800), so a closer
@@ -232,18 +258,21 @@ pub const AUTO_MISFIT_TOL: f64 = 0.01;
 
 impl AutoSigma {
     /// The discrepancy rule on `[from, to]`: the root of `ln(misfit(σ_c)/ν)` in `ln σ_c`.
-    /// It is bracketed from below — the bottom first, then steps up by
-    /// [`AUTO_BRACKET_STEP`], its square, its fourth power… (never past `to`), each
-    /// warm-started from the last — so the large σ_c where θ is hardly constrained are
-    /// solved only when the root lies near them;
-    /// then refined by regula falsi with the Illinois modification (Dowell & Jarratt, BIT
-    /// 11 (1971) 168–174; superlinear on this smooth, monotone curve, where bisection of
-    /// the whole range needs ~11 solves), a step kept a tenth of the bracket away from
-    /// either end; it bisects instead after any step that did not halve the bracket and
-    /// when one end's `ln(misfit/ν)` is over ten times the other's (the curve can jump:
-    /// four-bay seed 3 falls from 56 ν at σ_c = 1.59 to 0.96 ν at 2.4 and stays flat above,
-    /// where unguarded regula falsi crept down by tenths of the bracket, six trials without
-    /// reaching ν). It stops when the misfit is within
+    /// The first trial is [`AUTO_FIRST_TRIAL`] times the bottom (never past `to`): the
+    /// bottom is the costliest MAP of the range and the least informative when the model
+    /// is wrong. If the misfit there is still above ν, the root is bracketed from it
+    /// upwards — steps of [`AUTO_BRACKET_STEP`], then its square up to
+    /// [`AUTO_BRACKET_STEP_MAX`] (never past `to`) — so the large σ_c where θ is hardly constrained are solved only when the root
+    /// lies near them; if it is at or below ν, downwards by [`AUTO_BRACKET_STEP`] until the
+    /// misfit is above ν or the bottom is reached (then the bottom is taken).
+    /// The bracket is then refined by regula falsi with the Illinois modification (Dowell &
+    /// Jarratt, BIT 11 (1971) 168–174; superlinear on this smooth, monotone curve, where
+    /// bisection of the whole range needs ~11 solves), a step kept a tenth of the bracket
+    /// away from either end; it bisects instead after any step that did not halve the
+    /// bracket and when one end's `ln(misfit/ν)` is over [`AUTO_LOPSIDED`] times the other's (the curve
+    /// can jump: four-bay seed 3 falls from 56 ν at σ_c = 1.59 to 0.96 ν at 2.4 and stays
+    /// flat above, where unguarded regula falsi crept down by tenths of the bracket, six
+    /// trials without reaching ν). It stops when the misfit is within
     /// [`AUTO_MISFIT_TOL`] of ν or the bracket is `rel_tol` wide in σ_c; the σ_c returned
     /// has its misfit at or below ν (the smallest such σ_c found), or within
     /// [`AUTO_MISFIT_TOL`] above it. Each trial is one MAP solve to the precision the
@@ -262,22 +291,26 @@ impl AutoSigma {
     ) -> Result<Self, SweepError> {
         log_grid(from, to, 2)?;
         let mut trials = SigmaTrials::new(model, data, from, settings, progress)?;
-        let target = trials.target;
-        let (bottom, top) = (from.ln(), to.ln());
-        let m_lo = trials.misfit_at(bottom)?;
-        let (sigma, misfit, met) = if m_lo <= target {
-            (from, m_lo, true)
-        } else {
-            // Step up until the misfit falls to ν or the top is reached.
-            let bracket = trials.bracket(bottom, m_lo, top)?;
-            if bracket.m_hi > target && !trials.on_target(bracket.m_hi) {
-                (to, bracket.m_hi, false)
-            } else {
-                let (hi, m_at_hi) = trials.refine(bracket, rel_tol)?;
-                (hi.exp(), m_at_hi, true)
+        let first = (from * AUTO_FIRST_TRIAL).min(to);
+        let m_first = trials.misfit_at(first)?;
+        let bracket = if trials.on_target(m_first) {
+            return Ok(trials.choice(first, m_first, true));
+        } else if m_first <= trials.target {
+            match trials.bracket_down(first, m_first, from)? {
+                Down::Bracket(bracket) => bracket,
+                Down::Choice(sigma, m) => return Ok(trials.choice(sigma, m, true)),
             }
+        } else if first >= to {
+            return Ok(trials.choice(to, m_first, false));
+        } else {
+            let bracket = trials.bracket_up(first.ln(), m_first, to.ln())?;
+            if !trials.explained(bracket.m_hi) {
+                return Ok(trials.choice(to, bracket.m_hi, false));
+            }
+            bracket
         };
-        Ok(trials.choice(sigma, misfit, met))
+        let (hi, m_at_hi) = trials.refine(bracket, rel_tol)?;
+        Ok(trials.choice(hi.exp(), m_at_hi, true))
     }
 }
 
@@ -288,6 +321,14 @@ struct Bracket {
     m_lo: f64,
     hi: f64,
     m_hi: f64,
+}
+
+/// Where the downward bracket of [`SigmaTrials::bracket_down`] ended.
+enum Down {
+    /// The root lies inside.
+    Bracket(Bracket),
+    /// This σ_c and its misfit are the choice: on target, or the bottom of the range.
+    Choice(f64, f64),
 }
 
 /// The trials of [`AutoSigma::search`]: each one MAP solve at a σ_c, warm-started from the
@@ -352,9 +393,14 @@ impl<'a> SigmaTrials<'a> {
         (m / self.target).ln()
     }
 
-    /// The misfit of the MAP at σ_c = `e^x`: one trial.
-    fn misfit_at(&mut self, x: f64) -> Result<f64, SweepError> {
-        let sigma = x.exp();
+    /// Whether misfit `m` is explained: at or below ν, or on target.
+    fn explained(&self, m: f64) -> bool {
+        m <= self.target || self.on_target(m)
+    }
+
+    /// The misfit of the MAP at σ_c = `sigma`: one trial.
+    fn misfit_at(&mut self, sigma: f64) -> Result<f64, SweepError> {
+        let x = sigma.ln();
         let (index, target) = (self.trials.len() + 1, self.target);
         let trial = |misfit| SigmaTrial {
             index,
@@ -419,14 +465,15 @@ impl<'a> SigmaTrials<'a> {
     }
 
     /// Steps up from `lo0` (misfit `m_lo` above ν) by [`AUTO_BRACKET_STEP`], its square,
-    /// its fourth power… until the misfit falls to ν or on target, or `top` is reached.
-    fn bracket(&mut self, mut lo0: f64, mut m_lo: f64, top: f64) -> Result<Bracket, SweepError> {
+    /// then [`AUTO_BRACKET_STEP_MAX`] each… until the misfit is explained ([`Self::explained`]) or `top` is
+    /// reached.
+    fn bracket_up(&mut self, mut lo0: f64, mut m_lo: f64, top: f64) -> Result<Bracket, SweepError> {
         let mut step = AUTO_BRACKET_STEP.ln();
         let (hi0, m_hi) = loop {
             let x = (lo0 + step).min(top);
-            step *= 2.0;
-            let m = self.misfit_at(x)?;
-            if m <= self.target || self.on_target(m) || x >= top {
+            step = (2.0 * step).min(AUTO_BRACKET_STEP_MAX.ln());
+            let m = self.misfit_at(x.exp())?;
+            if self.explained(m) || x >= top {
                 break (x, m);
             }
             (lo0, m_lo) = (x, m);
@@ -437,6 +484,28 @@ impl<'a> SigmaTrials<'a> {
             hi: hi0,
             m_hi,
         })
+    }
+
+    /// Steps down from σ_c = `hi` (misfit `m_hi` explained) by [`AUTO_BRACKET_STEP`] until
+    /// the misfit is above ν, or the bottom `from` is explained too. A misfit above ν but
+    /// on target, or at the bottom, ends the search there.
+    fn bracket_down(&mut self, mut hi: f64, mut m_hi: f64, from: f64) -> Result<Down, SweepError> {
+        loop {
+            let sigma = (hi / AUTO_BRACKET_STEP).max(from);
+            let m = self.misfit_at(sigma)?;
+            if self.on_target(m) || (m <= self.target && sigma <= from) {
+                return Ok(Down::Choice(sigma, m));
+            }
+            if m > self.target {
+                return Ok(Down::Bracket(Bracket {
+                    lo: sigma.ln(),
+                    m_lo: m,
+                    hi: hi.ln(),
+                    m_hi,
+                }));
+            }
+            (hi, m_hi) = (sigma, m);
+        }
     }
 
     /// Regula falsi (Illinois) on `bracket`, bisecting after a step that did not halve
@@ -453,15 +522,15 @@ impl<'a> SigmaTrials<'a> {
         let mut bisect = false;
         while hi - lo > rel_tol.ln_1p() && !self.on_target(m_at_hi) {
             let width = hi - lo;
-            // A secant between ends whose f differ by more than a factor of ten
+            // A secant between ends whose f differ by more than AUTO_LOPSIDED
             // lands next to the smaller one, which moves the bracket by little.
-            let lopsided = f_lo > 10.0 * -f_hi || -f_hi > 10.0 * f_lo;
+            let lopsided = f_lo > AUTO_LOPSIDED * -f_hi || -f_hi > AUTO_LOPSIDED * f_lo;
             let x = if bisect || lopsided {
                 lo + 0.5 * width
             } else {
                 (hi - f_hi * width / (f_hi - f_lo)).clamp(lo + 0.1 * width, hi - 0.1 * width)
             };
-            let m = self.misfit_at(x)?;
+            let m = self.misfit_at(x.exp())?;
             if m <= self.target {
                 (hi, f_hi, m_at_hi) = (x, self.f(m), m);
                 if kept == Some(false) {

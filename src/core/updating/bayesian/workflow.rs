@@ -204,7 +204,10 @@ pub fn bayesian_update(
 
 /// The MAP at the chosen σ_c: from the automatic choice's trial there when there is one
 /// (Newton from its `(λ, θ)`; its full solve again from θ0 took another 15–100 s on the
-/// four-bay frame), by `opts.solver` from θ0 otherwise or if that does not converge.
+/// four-bay frame), by `opts.solver` from θ0 otherwise. If the Newton from the trial does
+/// not converge, `opts.solver` runs again from the trial's θ and the lower `J_p` of the two
+/// is kept (four-bay seed 3 at the bottom of the range, σ_c = 1: Newton from the trial
+/// stopped at 377.2023 where no step descends, and the continuation ended higher, 377.2067).
 fn final_map(
     prob: &mut BayesProblem,
     auto: Option<&AutoSigma>,
@@ -212,14 +215,20 @@ fn final_map(
     opts: &BayesOptions,
 ) -> Result<BayesResult, BayesError> {
     let trial = auto.and_then(|a| Some((a.lambda.as_deref()?, a.theta.as_deref()?)));
+    let mut warm = None;
     if let (Some((lambda, theta)), BayesSolver::Newton) = (trial, opts.solver) {
-        let warm = prob.solve_newton_from(lambda, theta, opts.max_iterations)?;
-        if warm.converged {
-            return Ok(warm);
+        let w = prob.solve_newton_from(lambda, theta, opts.max_iterations)?;
+        if w.converged {
+            return Ok(w);
         }
+        warm = Some(w);
     }
     let start = trial.map_or(theta0, |(_, theta)| theta);
-    prob.solve(opts.solver, start, opts.max_iterations)
+    let again = prob.solve(opts.solver, start, opts.max_iterations)?;
+    Ok(match warm {
+        Some(w) if w.terms.total < again.terms.total => w,
+        _ => again,
+    })
 }
 
 /// Stage I of the two-stage update (paper §4.2).
