@@ -215,25 +215,7 @@ pub(crate) mod tests {
         for j in 0..order.lower.ncols() {
             values[order.lower.col_ptr()[j]] = 1.0e4;
         }
-        let a = SparseColMatRef::new(order.lower.as_ref(), &values);
-        let mut factor = vec![0.0; order.symbolic.len_val()];
-        let mut mem = MemBuffer::new(
-            order
-                .symbolic
-                .factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Default::default()),
-        );
-        order
-            .symbolic
-            .factorize_numeric_ldlt(
-                &mut factor,
-                a,
-                Side::Lower,
-                LdltRegularization::default(),
-                Par::Seq,
-                MemStack::new(&mut mem),
-                Default::default(),
-            )
-            .unwrap();
+        let factor = order.factorize_ldlt(&values).unwrap();
         (values, factor)
     }
 

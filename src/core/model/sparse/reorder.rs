@@ -2,11 +2,13 @@
 //! permutation, the permuted matrix's lower triangle with each source entry's position in
 //! it, and the identity-ordered symbolic Cholesky factorization every numeric one reuses.
 
-use faer::Side;
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
 use faer::sparse::linalg::cholesky::{
     SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky,
 };
-use faer::sparse::{SymbolicSparseColMat, SymbolicSparseColMatRef};
+use faer::sparse::{SparseColMatRef, SymbolicSparseColMat, SymbolicSparseColMatRef};
+use faer::{Par, Side};
 
 use super::ordering::amd_ordering;
 use super::union::{MIRROR, UnionPattern, ValueLayout};
@@ -46,6 +48,29 @@ impl std::fmt::Debug for Reordered {
 }
 
 impl Reordered {
+    /// faer's numeric `LDLᵀ` of `values` (on `lower`'s pattern), with scratch of its own:
+    /// the factor's values, or `None` at a zero pivot. For a one-off factorization; a loop
+    /// that factorizes again and again keeps its scratch instead.
+    pub fn factorize_ldlt(&self, values: &[f64]) -> Option<Vec<f64>> {
+        let mut factor = vec![0.0; self.symbolic.len_val()];
+        let mut mem = MemBuffer::new(
+            self.symbolic
+                .factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Default::default()),
+        );
+        self.symbolic
+            .factorize_numeric_ldlt(
+                &mut factor,
+                SparseColMatRef::new(self.lower.as_ref(), values),
+                Side::Lower,
+                LdltRegularization::default(),
+                Par::Seq,
+                MemStack::new(&mut mem),
+                Default::default(),
+            )
+            .ok()?;
+        Some(factor)
+    }
+
     /// AMD ordering and symbolic factorization of a union pattern (symmetric, both
     /// triangles stored).
     pub fn new(union: &UnionPattern) -> Result<Self, faer::sparse::FaerError> {

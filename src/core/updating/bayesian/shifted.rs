@@ -38,10 +38,8 @@
 //! system's LU.
 
 use faer::dyn_stack::{MemBuffer, MemStack};
-use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
-use faer::sparse::SparseColMatRef;
 use faer::sparse::linalg::cholesky::LdltRef;
-use faer::{Conj, Mat, MatMut, MatRef, Par, Scale, Side};
+use faer::{Conj, Mat, MatMut, MatRef, Par, Scale};
 
 use super::ShapeRow;
 use crate::core::modal::{col_slice, col_slice_mut};
@@ -118,25 +116,8 @@ impl ShiftedFactor {
         let (n, n_o) = (model.n_dof(), rows.len());
         let mut a_lower = vec![0.0; order.len()];
         model.shifted_stiffness_reordered(order, theta, lambda, &mut a_lower);
-        let mut l_values = vec![0.0; order.symbolic.len_val()];
-        let mut mem = MemBuffer::new(
-            order
-                .symbolic
-                .factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Default::default()),
-        );
-        order
-            .symbolic
-            .factorize_numeric_ldlt(
-                &mut l_values,
-                SparseColMatRef::new(order.lower.as_ref(), &a_lower),
-                Side::Lower,
-                LdltRegularization::default(),
-                Par::Seq,
-                MemStack::new(&mut mem),
-                Default::default(),
-            )
-            .ok()?;
-        drop((a_lower, mem));
+        let l_values = order.factorize_ldlt(&a_lower)?;
+        drop(a_lower);
         let g_rows = weighted_rows(rows);
         let mut factor = Self {
             l_values,
