@@ -262,17 +262,18 @@ impl AutoSigma {
     /// bottom is the costliest MAP of the range and the least informative when the model
     /// is wrong. If the misfit there is still above ν, the root is bracketed from it
     /// upwards — steps of [`AUTO_BRACKET_STEP`], then its square up to
-    /// [`AUTO_BRACKET_STEP_MAX`] (never past `to`) — so the large σ_c where θ is hardly constrained are solved only when the root
-    /// lies near them; if it is at or below ν, downwards by [`AUTO_BRACKET_STEP`] until the
-    /// misfit is above ν or the bottom is reached (then the bottom is taken).
+    /// [`AUTO_BRACKET_STEP_MAX`] (never past `to`) — so the large σ_c where θ is hardly
+    /// constrained are solved only when the root lies near them; if it is at or below ν,
+    /// downwards by [`AUTO_BRACKET_STEP`] until the misfit is above ν or the bottom is
+    /// reached (then the bottom is taken).
     /// The bracket is then refined by regula falsi with the Illinois modification (Dowell &
     /// Jarratt, BIT 11 (1971) 168–174; superlinear on this smooth, monotone curve, where
     /// bisection of the whole range needs ~11 solves), a step kept a tenth of the bracket
     /// away from either end; it bisects instead after any step that did not halve the
-    /// bracket and when one end's `ln(misfit/ν)` is over [`AUTO_LOPSIDED`] times the other's (the curve
-    /// can jump: four-bay seed 3 falls from 56 ν at σ_c = 1.59 to 0.96 ν at 2.4 and stays
-    /// flat above, where unguarded regula falsi crept down by tenths of the bracket, six
-    /// trials without reaching ν). It stops when the misfit is within
+    /// bracket and when one end's `ln(misfit/ν)` is over [`AUTO_LOPSIDED`] times the
+    /// other's (the curve can jump: four-bay seed 3 falls from 56 ν at σ_c = 1.59 to
+    /// 0.96 ν at 2.4 and stays flat above, where unguarded regula falsi crept down by
+    /// tenths of the bracket, six trials without reaching ν). It stops when the misfit is within
     /// [`AUTO_MISFIT_TOL`] of ν or the bracket is `rel_tol` wide in σ_c; the σ_c returned
     /// has its misfit at or below ν (the smallest such σ_c found), or within
     /// [`AUTO_MISFIT_TOL`] above it. Each trial is one MAP solve to the precision the
@@ -465,8 +466,8 @@ impl<'a> SigmaTrials<'a> {
     }
 
     /// Steps up from `lo0` (misfit `m_lo` above ν) by [`AUTO_BRACKET_STEP`], its square,
-    /// then [`AUTO_BRACKET_STEP_MAX`] each… until the misfit is explained ([`Self::explained`]) or `top` is
-    /// reached.
+    /// then [`AUTO_BRACKET_STEP_MAX`] each… until the misfit is explained
+    /// ([`Self::explained`]) or `top` is reached.
     fn bracket_up(&mut self, mut lo0: f64, mut m_lo: f64, top: f64) -> Result<Bracket, SweepError> {
         let mut step = AUTO_BRACKET_STEP.ln();
         let (hi0, m_hi) = loop {
@@ -522,7 +523,7 @@ impl<'a> SigmaTrials<'a> {
         let mut bisect = false;
         while hi - lo > rel_tol.ln_1p() && !self.on_target(m_at_hi) {
             let width = hi - lo;
-            // A secant between ends whose f differ by more than AUTO_LOPSIDED
+            // A secant between ends whose f differ by more than a factor of AUTO_LOPSIDED
             // lands next to the smaller one, which moves the bracket by little.
             let lopsided = f_lo > AUTO_LOPSIDED * -f_hi || -f_hi > AUTO_LOPSIDED * f_lo;
             let x = if bisect || lopsided {
