@@ -48,7 +48,8 @@ pub(super) fn fit(
     let mut mm = ModeMatching::new(ev);
     let opts = mm_options();
     let result = if global {
-        mm.run_global(&model, data, theta0, &opts).map(|r| r.0)
+        mm.run_global_parallel(&model, data, theta0, &opts)
+            .map(|r| r.0)
     } else {
         mm.run(&model, data, theta0, &opts)
     }?;

@@ -30,6 +30,7 @@ pub mod effects;
 mod file_effects;
 mod fit;
 pub mod injection;
+mod joint;
 mod matrix_effects;
 mod refit;
 mod screen;

@@ -1,9 +1,14 @@
 //! Refitting the best candidates with the full nonlinear update (the profile ε(u) with θ
 //! refitted at every u) and the Laplace uncertainty of the effect's value: step 3.
 
+use std::cell::RefCell;
+
+use super::joint::{Coordinate, Joint, JointMinimum};
 use super::*;
 
-/// The full nonlinear refit of one candidate (module docs, step 3).
+/// The full nonlinear refit of one candidate (module docs, step 3): the minimum of the
+/// profile found by the joint fit ([`Joint`]) and confirmed on the profile, or by the
+/// profile search where the joint fit cannot be used; then the Laplace σ of the value.
 pub(super) fn refit(
     spec: &Description,
     effect: &dyn Effect,
@@ -11,56 +16,45 @@ pub(super) fn refit(
     data: &MeasuredData,
     theta0: &[f64],
 ) -> Option<Refit> {
-    let h = effect.step(spec, &c.location);
-    // The search coordinate: ln u for effects of one sign, u / h otherwise.
-    let (t0, d, to_u): (f64, f64, Box<dyn Fn(f64) -> f64>) = match effect.sign() {
-        Sign::Positive => (c.u_linear.max(h * 1e-3).ln(), 0.7, Box::new(f64::exp)),
-        Sign::Any => (
-            c.u_linear / h,
-            (c.u_linear.abs() / h / 2.0).max(1.0),
-            Box::new(move |t| t * h),
-        ),
+    let coord = Coordinate {
+        sign: effect.sign(),
+        h: effect.step(spec, &c.location),
     };
-    // Starts of the inner fits: the fitted θ without the effect, the nominal θ, and the θ of
-    // the best profile point so far (continuation). All three at the first point and at the
-    // minimum found; in between the continuation alone (its fits are short, u moves little).
-    // Should the minimum's other starts find a lower ε than the continuation did, the path
-    // followed a valley that is not the lowest: the search is repeated with all three
-    // everywhere.
-    let nominal = spec.build().ok()?.nominal_theta();
-    let best = std::cell::RefCell::new((f64::INFINITY, theta0.to_vec()));
-    let eps_at = |u: f64, all: bool| {
-        let last = best.borrow().1.clone();
-        let starts: &[&[f64]] = if all || !best.borrow().0.is_finite() {
-            &[theta0, &nominal, &last]
-        } else {
-            &[&last]
-        };
-        let r = profile_point(spec, effect, &c.location, u, data, starts);
-        if r.0 < best.borrow().0 {
-            *best.borrow_mut() = r.clone();
-        }
-        r
+    let profile = Profile {
+        spec,
+        effect,
+        location: &c.location,
+        data,
+        theta0,
+        nominal: spec.build().ok()?.nominal_theta(),
+        best: RefCell::new((f64::INFINITY, theta0.to_vec())),
+        from_all: RefCell::new(None),
     };
-    let (mut t, mut eps) = minimize_1d(|t| eps_at(to_u(t), false).0, t0, d, 2e-3);
-    if !eps.is_finite() {
-        return None;
+    let (t0, d) = coord.start(c.u_linear);
+    let joint = Joint {
+        spec,
+        effect,
+        location: &c.location,
+        data,
+        coord,
+    };
+    let (mut t, mut eps) = match joint.fit(theta0, t0) {
+        Some(m) => profile.confirm(m, coord),
+        None => None,
     }
-    let (eps_all, _) = eps_at(to_u(t), true);
-    if eps_all < eps - 1e-2 {
-        (t, eps) = minimize_1d(|t| eps_at(to_u(t), true).0, t, d, 2e-3);
+    .map_or_else(|| profile.search(t0, d, coord), Some)?;
+    // Laplace: σ_u² = 2 / ε''(u), by a three-point difference around the minimum. A
+    // neighbour below the minimum means the joint fit stopped short of it: the profile
+    // search goes on from there.
+    let mut laplace = profile.curvature(coord.u(t), eps, coord);
+    if laplace.lower_neighbour {
+        (t, eps) = profile.search(t, d, coord)?;
+        laplace = profile.curvature(coord.u(t), eps, coord);
     }
-    let u = to_u(t);
-    let (_, theta) = eps_at(u, true);
-    // Laplace: σ_u² = 2 / ε''(u), by a three-point difference around the minimum.
-    let du = match effect.sign() {
-        Sign::Positive => 0.05 * u,
-        Sign::Any => 0.05 * u.abs().max(h),
-    };
-    let (em, ep) = (eps_at(u - du, false).0, eps_at(u + du, false).0);
-    let curvature = (ep - 2.0 * eps + em) / (du * du);
-    let std_u = if curvature > 0.0 {
-        (2.0 / curvature).sqrt()
+    let u = coord.u(t);
+    let (_, theta) = profile.at(u, true);
+    let std_u = if laplace.curvature > 0.0 {
+        (2.0 / laplace.curvature).sqrt()
     } else {
         f64::NAN
     };
@@ -75,6 +69,98 @@ pub(super) fn refit(
         epsilon: eps,
         theta,
     })
+}
+
+/// The profile `ε(u) = min_θ ε(θ, u)` of one candidate: every point an inner fit of θ.
+struct Profile<'a> {
+    spec: &'a Description,
+    effect: &'a dyn Effect,
+    location: &'a str,
+    data: &'a MeasuredData,
+    /// The fitted θ without the effect.
+    theta0: &'a [f64],
+    nominal: Vec<f64>,
+    /// The lowest point so far: its ε and θ.
+    best: RefCell<(f64, Vec<f64>)>,
+    /// The last point fitted from every start: its `u`, ε and θ.
+    from_all: RefCell<Option<(f64, f64, Vec<f64>)>>,
+}
+
+/// The profile's second difference around its minimum.
+struct Laplace {
+    curvature: f64,
+    /// A neighbour lies below the minimum by more than the search resolves.
+    lower_neighbour: bool,
+}
+
+/// ε differences the profile resolves: its points are fitted to 1e-3 (`fit::mm_options`).
+const PROFILE_RESOLUTION: f64 = 1e-2;
+
+impl Profile<'_> {
+    /// ε at `u` with θ fitted from the θ of the best point so far (continuation), or, if
+    /// `all` or at the first point, also from the fitted θ without the effect and from the
+    /// nominal θ (module docs, step 3).
+    fn at(&self, u: f64, all: bool) -> (f64, Vec<f64>) {
+        if let Some((at, eps, theta)) = &*self.from_all.borrow()
+            && all
+            && *at == u
+        {
+            return (*eps, theta.clone());
+        }
+        let last = self.best.borrow().1.clone();
+        let starts: &[&[f64]] = if all || !self.best.borrow().0.is_finite() {
+            &[self.theta0, &self.nominal, &last]
+        } else {
+            &[&last]
+        };
+        let r = profile_point(self.spec, self.effect, self.location, u, self.data, starts);
+        if r.0 < self.best.borrow().0 {
+            *self.best.borrow_mut() = r.clone();
+        }
+        if all {
+            *self.from_all.borrow_mut() = Some((u, r.0, r.1.clone()));
+        }
+        r
+    }
+
+    /// The joint fit's minimum checked on the profile: θ refitted there from every start.
+    /// `None` if another start finds a lower ε (the joint path followed a valley that is
+    /// not the lowest).
+    fn confirm(&self, m: JointMinimum, coord: Coordinate) -> Option<(f64, f64)> {
+        *self.best.borrow_mut() = (m.epsilon, m.theta);
+        let (eps, _) = self.at(coord.u(m.t), true);
+        (eps >= m.epsilon - PROFILE_RESOLUTION).then_some((m.t, eps.min(m.epsilon)))
+    }
+
+    /// The profile search: a downhill bracket and Brent's method from `t0` with step `d`,
+    /// the inner fits by continuation. Should the minimum's other starts find a lower ε
+    /// than the continuation did, the path followed a valley that is not the lowest: the
+    /// search is repeated with all three starts everywhere.
+    fn search(&self, t0: f64, d: f64, coord: Coordinate) -> Option<(f64, f64)> {
+        let (mut t, mut eps) = minimize_1d(|t| self.at(coord.u(t), false).0, t0, d, 2e-3);
+        if !eps.is_finite() {
+            return None;
+        }
+        let (eps_all, _) = self.at(coord.u(t), true);
+        if eps_all < eps - PROFILE_RESOLUTION {
+            (t, eps) = minimize_1d(|t| self.at(coord.u(t), true).0, t, d, 2e-3);
+        }
+        Some((t, eps))
+    }
+
+    /// The second difference of the profile at ±5 % of the value (of the effect's step
+    /// near zero).
+    fn curvature(&self, u: f64, eps: f64, coord: Coordinate) -> Laplace {
+        let du = match coord.sign {
+            Sign::Positive => 0.05 * u,
+            Sign::Any => 0.05 * u.abs().max(coord.h),
+        };
+        let (em, ep) = (self.at(u - du, false).0, self.at(u + du, false).0);
+        Laplace {
+            curvature: (ep - 2.0 * eps + em) / (du * du),
+            lower_neighbour: em.min(ep) < eps - PROFILE_RESOLUTION,
+        }
+    }
 }
 
 /// `f` over `items` on rayon's pool (results in item order); `progress(done)` on the

@@ -5,6 +5,7 @@
 use super::UpdateError;
 use super::data::MeasuredData;
 use super::mode_matching::{ModeMatching, ModeMatchingOptions, ModeMatchingResult};
+use super::residual::Evaluator;
 use crate::core::model::Model;
 use crate::core::stats::chi2_bound;
 
@@ -35,6 +36,39 @@ impl ModeMatching {
         theta0: &[f64],
         opts: &ModeMatchingOptions,
     ) -> Result<(ModeMatchingResult, StartPath), UpdateError> {
+        self.globalize(model, data, theta0, opts, 1)
+    }
+
+    /// [`ModeMatching::run_global`] with the restarts run as many at a time as rayon has
+    /// threads, each on an evaluator of its own and without progress reports. A cold
+    /// evaluation depends on θ alone, so the result is the sequential one; an evaluator with
+    /// warm starts (whose solves depend on the last one) runs them in turn. Restarts run
+    /// beside one that is accepted are wasted, so this is for one-off fits (`diagnose`'s
+    /// first), not for a tracker's.
+    pub fn run_global_parallel(
+        &mut self,
+        model: &Model,
+        data: &MeasuredData,
+        theta0: &[f64],
+        opts: &ModeMatchingOptions,
+    ) -> Result<(ModeMatchingResult, StartPath), UpdateError> {
+        let batch = if self.evaluator.warm() {
+            1
+        } else {
+            rayon::current_num_threads().max(1)
+        };
+        self.globalize(model, data, theta0, opts, batch)
+    }
+
+    /// The globalization, its restarts `batch` at a time.
+    fn globalize(
+        &mut self,
+        model: &Model,
+        data: &MeasuredData,
+        theta0: &[f64],
+        opts: &ModeMatchingOptions,
+        batch: usize,
+    ) -> Result<(ModeMatchingResult, StartPath), UpdateError> {
         let bound = chi2_bound(data.n_data(), model.n_params());
         // Converged within its bound. (A fit paired across a crossing is accepted here: the
         // tracker's cold starts and the diagnosis's fits keep their behaviour; `update`
@@ -45,33 +79,68 @@ impl ModeMatching {
             return Ok((first, StartPath::Given));
         }
         let mut best = (first, StartPath::Given);
-        for value in RESTART_STARTS {
-            let start: Vec<f64> = model
-                .parameters()
-                .iter()
-                .map(|p| match p.kind {
-                    crate::core::model::ParameterKind::Modulus(_) => p.nominal,
-                    _ => value * p.nominal,
-                })
-                .collect();
-            // A start the solver cannot handle (an eigen solve that fails at its θ) is a
-            // bad start, not a failed update.
-            let Ok(r) = self.run(model, data, &start, opts) else {
-                continue;
-            };
-            let path = StartPath::Restart { value };
-            if good(&r) {
-                return Ok((r, path));
-            }
-            let better = match (r.converged(), best.0.converged()) {
-                (true, false) => true,
-                (false, true) => false,
-                _ => r.epsilon() < best.0.epsilon(),
-            };
-            if better {
-                best = (r, path);
+        for values in RESTART_STARTS.chunks(batch) {
+            for (value, r) in values.iter().zip(self.restarts(model, data, values, opts)) {
+                // A start the solver cannot handle (an eigen solve that fails at its θ) is a
+                // bad start, not a failed update.
+                let Some(r) = r else {
+                    continue;
+                };
+                let path = StartPath::Restart { value: *value };
+                if good(&r) {
+                    return Ok((r, path));
+                }
+                let better = match (r.converged(), best.0.converged()) {
+                    (true, false) => true,
+                    (false, true) => false,
+                    _ => r.epsilon() < best.0.epsilon(),
+                };
+                if better {
+                    best = (r, path);
+                }
             }
         }
         Ok(best)
     }
+
+    /// The runs from the uniform starts `values` (in order; `None` for a run that failed):
+    /// on this evaluator for one, in parallel on evaluators of their own for more.
+    fn restarts(
+        &mut self,
+        model: &Model,
+        data: &MeasuredData,
+        values: &[f64],
+        opts: &ModeMatchingOptions,
+    ) -> Vec<Option<ModeMatchingResult>> {
+        use rayon::prelude::*;
+        if let [value] = values {
+            return vec![
+                self.run(model, data, &uniform_start(model, *value), opts)
+                    .ok(),
+            ];
+        }
+        let pairing = self.evaluator.pairing();
+        values
+            .par_iter()
+            .map(|&value| {
+                let mut evaluator = Evaluator::new(model).ok()?;
+                evaluator.set_pairing(pairing);
+                ModeMatching::new(evaluator)
+                    .run(model, data, &uniform_start(model, value), opts)
+                    .ok()
+            })
+            .collect()
+    }
+}
+
+/// The restart `θ = value × nominal` (the E-type parameters at their nominal value).
+fn uniform_start(model: &Model, value: f64) -> Vec<f64> {
+    model
+        .parameters()
+        .iter()
+        .map(|p| match p.kind {
+            crate::core::model::ParameterKind::Modulus(_) => p.nominal,
+            _ => value * p.nominal,
+        })
+        .collect()
 }

@@ -155,6 +155,11 @@ impl Evaluator {
         self.eigen.set_warm(on);
     }
 
+    /// Whether solves start warm ([`Evaluator::set_warm_start`]).
+    pub fn warm(&self) -> bool {
+        self.warm
+    }
+
     /// The block the next warm solve starts from (that of the last solve).
     pub fn warm_state(&self) -> Option<WarmBlock> {
         self.eigen.warm_block().cloned()

@@ -1,0 +1,258 @@
+//! An effect's value fitted jointly with θ: one Levenberg–Marquardt problem in `(ln θ, t)`,
+//! `t` the effect's search coordinate (`ln u` for effects of one sign, `u / h` otherwise).
+//! It finds the minimum of the profile `ε(u) = min_θ ε(θ, u)` in one fit where the profile
+//! search needs 10–25 (module docs of [`super::refit`]).
+//!
+//! The θ columns of the Jacobian are Nelson's, at the model with the effect at `u`; the `t`
+//! column is a forward difference (one more model and eigen solve per iteration). A step of
+//! `t` that changes the mode pairing (a measured mode moved across a close neighbour) has no
+//! such column, in either direction: the fit then gives up, and the caller searches the
+//! profile instead.
+
+use faer::Side;
+use faer::linalg::solvers::Solve;
+
+use super::*;
+use crate::core::updating::LogBounds;
+
+/// The joint fit stops once the undamped step predicts a decrease of ε below this: the
+/// inner fits' tolerance (`fit::mm_options`), which is 0.03 σ of the value at the minimum.
+const EPS_TOL: f64 = 1e-3;
+
+/// Iterations at most; a fit still going then is handed to the profile search.
+const MAX_ITERATIONS: usize = 60;
+
+/// Largest change of `ln θ_i` or of `ln u` in one step (as mode matching's cap).
+const MAX_LOG_STEP: f64 = 2.0;
+
+/// The effect's search coordinate `t` and its value `u`.
+#[derive(Clone, Copy)]
+pub(super) struct Coordinate {
+    pub(super) sign: Sign,
+    /// The effect's finite-difference step at `u = 0`.
+    pub(super) h: f64,
+}
+
+impl Coordinate {
+    pub(super) fn u(&self, t: f64) -> f64 {
+        match self.sign {
+            Sign::Positive => t.exp(),
+            Sign::Any => t * self.h,
+        }
+    }
+
+    /// The start of the search from the screened value, and the profile bracket's step.
+    pub(super) fn start(&self, u_linear: f64) -> (f64, f64) {
+        match self.sign {
+            Sign::Positive => (u_linear.max(self.h * 1e-3).ln(), 0.7),
+            Sign::Any => (u_linear / self.h, (u_linear.abs() / self.h / 2.0).max(1.0)),
+        }
+    }
+
+    /// The forward-difference step of `t` for the Jacobian's column: 0.1 % of `u`, or a
+    /// thousandth of the effect's step near `u = 0`.
+    fn difference_step(&self, t: f64) -> f64 {
+        match self.sign {
+            Sign::Positive => 1e-3,
+            Sign::Any => 1e-3 * t.abs().max(1.0),
+        }
+    }
+
+    /// The cap on one step of `t`: [`MAX_LOG_STEP`] in `ln u`, and in `u / h` as large a
+    /// relative change, or 10 effect steps near zero.
+    fn max_step(&self, t: f64) -> f64 {
+        match self.sign {
+            Sign::Positive => MAX_LOG_STEP,
+            Sign::Any => (MAX_LOG_STEP * t.abs()).max(10.0),
+        }
+    }
+}
+
+/// One candidate's joint problem: the model class, the effect at its location, the data.
+pub(super) struct Joint<'a> {
+    pub(super) spec: &'a Description,
+    pub(super) effect: &'a dyn Effect,
+    pub(super) location: &'a str,
+    pub(super) data: &'a MeasuredData,
+    pub(super) coord: Coordinate,
+}
+
+/// The model with the effect at `t`, and the residual at θ there.
+struct Point {
+    t: f64,
+    model: Model,
+    evaluator: Evaluator,
+    ev: Evaluation,
+}
+
+/// Where the joint fit ended.
+pub(super) struct JointMinimum {
+    pub(super) t: f64,
+    pub(super) epsilon: f64,
+    pub(super) theta: Vec<f64>,
+}
+
+impl Joint<'_> {
+    /// The joint Levenberg–Marquardt fit from `(θ0, t0)`; `None` when the `t` column cannot
+    /// be formed (a pairing change both ways), a model fails to build or evaluate, or the
+    /// fit has not converged within [`MAX_ITERATIONS`].
+    pub(super) fn fit(&self, theta0: &[f64], t0: f64) -> Option<JointMinimum> {
+        let mut cur = self.point(t0, theta0)?;
+        let bounds = LogBounds::new(&cur.model, None);
+        let mut mu = 1e-3;
+        let mut nu = 2.0;
+        for _ in 0..MAX_ITERATIONS {
+            let (a, g) = self.normal_equations(&mut cur)?;
+            if predicted_decrease(&a, &g).is_some_and(|d| d < EPS_TOL) {
+                return Some(cur.minimum());
+            }
+            match self.damped_step(&cur, &bounds, &a, &g, &mut mu, &mut nu) {
+                Some(next) => cur = next,
+                // No damped step lowers ε: the evaluations no longer resolve a descent.
+                None => return Some(cur.minimum()),
+            }
+        }
+        None
+    }
+
+    /// The model with the effect at `t`, evaluated at θ.
+    fn point(&self, t: f64, theta: &[f64]) -> Option<Point> {
+        let mut s = self.spec.clone();
+        self.effect
+            .apply(&mut s, self.location, self.coord.u(t))
+            .ok()?;
+        let model = s.build().ok()?;
+        let mut evaluator = Evaluator::new(&model).ok()?;
+        let ev = evaluator.evaluate(&model, self.data, theta).ok()?;
+        Some(Point {
+            t,
+            model,
+            evaluator,
+            ev,
+        })
+    }
+
+    /// `JᵀJ` and `Jᵀr` in `(ln θ, t)`: Nelson's columns scaled by θ, and the forward
+    /// difference in `t` (backward if forward changes the pairing).
+    fn normal_equations(&self, cur: &mut Point) -> Option<(Mat<f64>, faer::Col<f64>)> {
+        let jac = cur
+            .evaluator
+            .jacobian(&cur.model, self.data, &cur.ev)
+            .ok()?;
+        let column = self.t_column(cur)?;
+        let (n, p) = (jac.nrows(), jac.ncols());
+        let j = Mat::from_fn(n, p + 1, |i, l| {
+            if l < p {
+                jac[(i, l)] * cur.ev.theta[l]
+            } else {
+                column[i]
+            }
+        });
+        let a = j.transpose() * &j;
+        let g = j.transpose() * faer::ColRef::from_slice(&cur.ev.r);
+        Some((a, g))
+    }
+
+    /// `∂r/∂t` at the current point by a one-sided difference with the pairing unchanged.
+    fn t_column(&self, cur: &Point) -> Option<Vec<f64>> {
+        let dt = self.coord.difference_step(cur.t);
+        for step in [dt, -dt] {
+            let Some(other) = self.point(cur.t + step, &cur.ev.theta) else {
+                continue;
+            };
+            if other.ev.pairing == cur.ev.pairing && other.ev.r.len() == cur.ev.r.len() {
+                let col = other
+                    .ev
+                    .r
+                    .iter()
+                    .zip(&cur.ev.r)
+                    .map(|(a, b)| (a - b) / step)
+                    .collect();
+                return Some(col);
+            }
+        }
+        None
+    }
+
+    /// Levenberg–Marquardt trials with growing damping (Marquardt's diagonal scaling,
+    /// Nielsen's update of μ from the gain ratio) until one lowers ε.
+    fn damped_step(
+        &self,
+        cur: &Point,
+        bounds: &LogBounds,
+        a: &Mat<f64>,
+        g: &faer::Col<f64>,
+        mu: &mut f64,
+        nu: &mut f64,
+    ) -> Option<Point> {
+        let p = g.nrows() - 1;
+        let theta = &cur.ev.theta;
+        let dmax = (0..=p).map(|i| a[(i, i)]).fold(0.0_f64, f64::max);
+        while *mu < 1e16 {
+            let mut damped = a.clone();
+            for i in 0..=p {
+                damped[(i, i)] += *mu * a[(i, i)].max(1e-12 * dmax);
+            }
+            let Ok(llt) = damped.llt(Side::Lower) else {
+                (*mu, *nu) = (*mu * *nu, *nu * 2.0);
+                continue;
+            };
+            let mut step = -g.clone();
+            llt.solve_in_place(step.as_mat_mut());
+            self.limit(&mut step, cur.t, theta, bounds);
+            let pred = -(2.0 * (step.transpose() * g) + step.transpose() * (a * &step));
+            let new: Vec<f64> = (0..p).map(|i| theta[i] * step[i].exp()).collect();
+            if let Some(trial) = self.point(cur.t + step[p], &new) {
+                let actual = cur.ev.epsilon - trial.ev.epsilon;
+                if actual > 0.0 && pred > 0.0 {
+                    let rho = actual / pred;
+                    *mu *= (1.0 / 3.0_f64).max(1.0 - (2.0 * rho - 1.0).powi(3));
+                    *nu = 2.0;
+                    return Some(trial);
+                }
+            }
+            (*mu, *nu) = (*mu * *nu, *nu * 2.0);
+        }
+        None
+    }
+
+    /// The step scaled to the caps ([`MAX_LOG_STEP`], [`Coordinate::max_step`]) and its θ
+    /// part cut at the bounds.
+    fn limit(&self, step: &mut faer::Col<f64>, t: f64, theta: &[f64], bounds: &LogBounds) {
+        let p = theta.len();
+        let over = (0..p)
+            .map(|i| step[i].abs() / MAX_LOG_STEP)
+            .fold(step[p].abs() / self.coord.max_step(t), f64::max);
+        if over > 1.0 {
+            *step *= faer::Scale(1.0 / over);
+        }
+        for (i, th) in theta.iter().enumerate() {
+            step[i] = bounds.clip(i, th.ln(), step[i]);
+        }
+    }
+}
+
+impl Point {
+    fn minimum(&self) -> JointMinimum {
+        JointMinimum {
+            t: self.t,
+            epsilon: self.ev.epsilon,
+            theta: self.ev.theta.clone(),
+        }
+    }
+}
+
+/// The decrease of ε the undamped Gauss–Newton step predicts, `gᵀA⁻¹g` (`None` when `A` is
+/// singular to a tiny regularization).
+fn predicted_decrease(a: &Mat<f64>, g: &faer::Col<f64>) -> Option<f64> {
+    let n = g.nrows();
+    let dmax = (0..n).map(|i| a[(i, i)]).fold(0.0_f64, f64::max);
+    let mut reg = a.clone();
+    for i in 0..n {
+        reg[(i, i)] += 1e-12 * dmax;
+    }
+    let llt = reg.llt(Side::Lower).ok()?;
+    let mut x = g.clone();
+    llt.solve_in_place(x.as_mat_mut());
+    Some((x.transpose() * g).max(0.0))
+}
