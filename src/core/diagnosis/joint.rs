@@ -256,3 +256,77 @@ fn predicted_decrease(a: &Mat<f64>, g: &faer::Col<f64>) -> Option<f64> {
     llt.solve_in_place(x.as_mat_mut());
     Some((x.transpose() * g).max(0.0))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::simulate::{Noise, simulated_measured_data};
+
+    fn lab() -> Description {
+        let text = std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/config/models/lab-frame.toml"
+        ))
+        .unwrap();
+        Description::File(toml::from_str(&text).unwrap())
+    }
+
+    /// Noise-free data of the lab frame with `kind@location = truth` and its bolts at θ
+    /// scaled from nominal; the joint fit from the nominal θ and `u0` recovers the value and
+    /// θ, with ε at rounding level.
+    fn recovers(kind: &str, location: &str, truth: f64, u0: f64) {
+        let spec = lab();
+        let effect = effects::by_kind(kind).unwrap();
+        let mut with = spec.clone();
+        effect.apply(&mut with, location, truth).unwrap();
+        let model = with.build().unwrap();
+        let theta: Vec<f64> = model
+            .nominal_theta()
+            .iter()
+            .enumerate()
+            .map(|(i, t)| t * (0.8 + 0.05 * (i % 5) as f64))
+            .collect();
+        let noise = Noise {
+            frequency_cov: 0.01,
+            shape_nsd: 0.05,
+        };
+        let data = simulated_measured_data(&model, &theta, 9, noise, false, 1).unwrap();
+        let coord = Coordinate {
+            sign: effect.sign(),
+            h: effect.step(&spec, location),
+        };
+        let joint = Joint {
+            spec: &spec,
+            effect: effect.as_ref(),
+            location,
+            data: &data,
+            coord,
+        };
+        let (t0, _) = coord.start(u0);
+        let nominal = spec.build().unwrap().nominal_theta();
+        let m = joint.fit(&nominal, t0).expect("the joint fit converges");
+        let u = coord.u(m.t);
+        // Noise-free data: ε is rounding (eigenpairs to ~1e-10 relative, residuals in units
+        // of a 1 % σ) plus the 1e-3 stop; the value to what such an ε allows.
+        assert!(m.epsilon < 1e-3, "{kind}@{location}: ε = {}", m.epsilon);
+        assert!(
+            (u - truth).abs() <= 1e-3 * truth.abs(),
+            "{kind}@{location}: u = {u}, truth {truth}"
+        );
+        for (i, (a, b)) in m.theta.iter().zip(&theta).enumerate() {
+            assert!((a / b - 1.0).abs() < 1e-2, "θ{}: {a} against {b}", i + 1);
+        }
+    }
+
+    /// An effect of one sign, fitted in `ln u`, from half its value.
+    #[test]
+    fn a_mass_and_theta_are_recovered_jointly() {
+        recovers("added-mass", "B2.3", 1.0, 0.5);
+    }
+
+    /// An effect of either sign, fitted in `u / h`, from a tenth of its value.
+    #[test]
+    fn a_stiffness_change_and_theta_are_recovered_jointly() {
+        recovers("member-stiffness", "C1L", -0.3, -0.03);
+    }
+}

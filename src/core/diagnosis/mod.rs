@@ -13,10 +13,12 @@
 //!    whose step changes the mode pairing (it moves a measured mode across a close
 //!    neighbour) has no first-order column; it is scored by the same reduction at a few
 //!    finite values of `u`, θ corrected to first order (`screen::probe`).
-//! 3. **Refit** the best few with the full nonlinear update: ε is minimized over the effect's
-//!    value with θ refitted at every value (the profile `ε(u) = min_θ ε(θ, u)`, by a downhill
-//!    bracket and Brent's search), and its standard deviation is the Laplace one, `σ_u² = 2/ε''`
-//!    (ε is −2 log L up to a constant).
+//! 3. **Refit** the best few with the full nonlinear update: the minimum over the effect's
+//!    value of the profile `ε(u) = min_θ ε(θ, u)`, found by fitting the value jointly with θ
+//!    (`joint.rs`) and checked on the profile (θ refitted there from every start), or by a
+//!    downhill bracket and Brent's search of the profile where the joint fit cannot be
+//!    used; its standard deviation is the Laplace one, `σ_u² = 2/ε''` (ε is −2 log L up to a
+//!    constant).
 //! 4. **Decide** by a likelihood-ratio test: `Λ = ε_before − ε_after` is χ²₁ under "no missing
 //!    effect"; the best refit is named when Λ exceeds the χ²₁ quantile at family-wise level α
 //!    over all candidates screened (Bonferroni). The BIC approximation of the log Bayes factor,

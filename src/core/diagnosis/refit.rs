@@ -1,5 +1,6 @@
-//! Refitting the best candidates with the full nonlinear update (the profile ε(u) with θ
-//! refitted at every u) and the Laplace uncertainty of the effect's value: step 3.
+//! Refitting the best candidates with the full nonlinear update (the minimum of the profile
+//! ε(u) = min_θ ε(θ, u), found by the joint fit of [`super::joint`] and checked on the
+//! profile) and the Laplace uncertainty of the effect's value: step 3.
 
 use std::cell::RefCell;
 
