@@ -68,14 +68,7 @@ pub(super) fn profile_point(
     starts: &[&[f64]],
 ) -> (f64, Vec<f64>) {
     let mut best = (f64::INFINITY, starts[0].to_vec());
-    let mut s = spec.clone();
-    if effect.apply(&mut s, location, u).is_err() {
-        return best;
-    }
-    let Ok(model) = s.build() else {
-        return best;
-    };
-    let Ok(ev) = Evaluator::new(&model) else {
+    let Some((model, ev)) = with_effect(spec, effect, location, u) else {
         return best;
     };
     let mut mm = ModeMatching::new(ev);
@@ -87,6 +80,21 @@ pub(super) fn profile_point(
         }
     }
     best
+}
+
+/// The model class with `effect` at `location` of value `u`, and an evaluator for it;
+/// `None` when the effect does not apply there or the model does not build.
+pub(super) fn with_effect(
+    spec: &Description,
+    effect: &dyn Effect,
+    location: &str,
+    u: f64,
+) -> Option<(Model, Evaluator)> {
+    let mut s = spec.clone();
+    effect.apply(&mut s, location, u).ok()?;
+    let model = s.build().ok()?;
+    let evaluator = Evaluator::new(&model).ok()?;
+    Some((model, evaluator))
 }
 
 /// The misfit of a fitted model, per mode and per channel.

@@ -117,12 +117,8 @@ impl Joint<'_> {
 
     /// The model with the effect at `t`, evaluated at θ.
     fn point(&self, t: f64, theta: &[f64]) -> Option<Point> {
-        let mut s = self.spec.clone();
-        self.effect
-            .apply(&mut s, self.location, self.coord.u(t))
-            .ok()?;
-        let model = s.build().ok()?;
-        let mut evaluator = Evaluator::new(&model).ok()?;
+        let (model, mut evaluator) =
+            with_effect(self.spec, self.effect, self.location, self.coord.u(t))?;
         let ev = evaluator.evaluate(&model, self.data, theta).ok()?;
         Some(Point {
             t,

@@ -51,7 +51,7 @@ use crate::core::updating::{
 };
 pub use description::Description;
 use effects::{Effect, Sign};
-use fit::{build, fit, localize, profile_point};
+use fit::{build, fit, localize, profile_point, with_effect};
 use refit::{effect_of, map_with_progress, refit, reprofile, with_effects};
 use screen::{candidates_of, screen};
 use search::minimize_1d;

@@ -74,10 +74,7 @@ fn evaluate_with(
     data: &MeasuredData,
     base: &Evaluation,
 ) -> Option<Evaluation> {
-    let mut s = spec.clone();
-    effect.apply(&mut s, location, u).ok()?;
-    let model = s.build().ok()?;
-    let mut ev = Evaluator::new(&model).ok()?;
+    let (model, mut ev) = with_effect(spec, effect, location, u)?;
     ev.evaluate(&model, data, &base.theta).ok()
 }
 
