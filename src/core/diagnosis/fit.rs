@@ -90,11 +90,22 @@ pub(super) fn with_effect(
     location: &str,
     u: f64,
 ) -> Option<(Model, Evaluator)> {
-    let mut s = spec.clone();
-    effect.apply(&mut s, location, u).ok()?;
-    let model = s.build().ok()?;
+    let model = model_with(spec, effect, location, u)?;
     let evaluator = Evaluator::new(&model).ok()?;
     Some((model, evaluator))
+}
+
+/// The model class with `effect` at `location` of value `u`; `None` when the effect does
+/// not apply there or the model does not build.
+pub(super) fn model_with(
+    spec: &Description,
+    effect: &dyn Effect,
+    location: &str,
+    u: f64,
+) -> Option<Model> {
+    let mut s = spec.clone();
+    effect.apply(&mut s, location, u).ok()?;
+    s.build().ok()
 }
 
 /// The misfit of a fitted model, per mode and per channel.

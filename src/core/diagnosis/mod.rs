@@ -34,6 +34,7 @@ mod fit;
 pub mod injection;
 mod joint;
 mod matrix_effects;
+mod reduced;
 mod refit;
 mod screen;
 mod search;
@@ -51,7 +52,8 @@ use crate::core::updating::{
 };
 pub use description::Description;
 use effects::{Effect, Sign};
-use fit::{build, fit, localize, profile_point, with_effect};
+use fit::{build, fit, localize, model_with, profile_point, with_effect};
+use reduced::ReducedBasis;
 use refit::{effect_of, map_with_progress, refit, reprofile, with_effects};
 use screen::{candidates_of, screen};
 use search::minimize_1d;

@@ -38,11 +38,12 @@ pub(super) fn screen(
     data: &MeasuredData,
     base: &Evaluation,
     q: &Mat<f64>,
+    reduced: Option<&ReducedBasis>,
 ) -> Option<Candidate> {
     let h = effect.step(spec, location);
-    let e = evaluate_with(spec, effect, location, h, data, base)?;
+    let e = evaluate_with(spec, effect, location, h, data, base, reduced)?;
     if e.pairing != base.pairing || e.r.len() != base.r.len() {
-        return probe(spec, effect, location, data, base, q);
+        return probe(spec, effect, location, data, base, q, reduced);
     }
     let mut g: Vec<f64> = e.r.iter().zip(&base.r).map(|(a, b)| (a - b) / h).collect();
     project_off(&mut g, q);
@@ -65,7 +66,8 @@ pub(super) fn screen(
     })
 }
 
-/// The evaluation at the base θ with the effect applied at value `u`.
+/// The evaluation at the base θ with the effect applied at value `u`: by a reduced solve
+/// where one holds ([`ReducedBasis`]), else in full.
 fn evaluate_with(
     spec: &Description,
     effect: &dyn Effect,
@@ -73,8 +75,13 @@ fn evaluate_with(
     u: f64,
     data: &MeasuredData,
     base: &Evaluation,
+    reduced: Option<&ReducedBasis>,
 ) -> Option<Evaluation> {
-    let (model, mut ev) = with_effect(spec, effect, location, u)?;
+    let model = model_with(spec, effect, location, u)?;
+    if let Some(ev) = reduced.and_then(|b| b.evaluate(&model, data)) {
+        return Some(ev);
+    }
+    let mut ev = Evaluator::new(&model).ok()?;
     ev.evaluate(&model, data, &base.theta).ok()
 }
 
@@ -100,6 +107,7 @@ fn probe(
     data: &MeasuredData,
     base: &Evaluation,
     q: &Mat<f64>,
+    reduced: Option<&ReducedBasis>,
 ) -> Option<Candidate> {
     let h = effect.step(spec, location);
     let signs: &[f64] = match effect.sign() {
@@ -116,7 +124,7 @@ fn probe(
     for &sign in signs {
         for k in PROBE_STEPS {
             let u = sign * k * h;
-            let Some(e) = evaluate_with(spec, effect, location, u, data, base) else {
+            let Some(e) = evaluate_with(spec, effect, location, u, data, base, reduced) else {
                 continue;
             };
             if e.r.len() != base.r.len() {

@@ -79,9 +79,10 @@ impl Workflow<'_> {
         let q = j.qr().compute_thin_Q();
         let cands = candidates_of(&self.effects, current, &s.named);
         let total = cands.len();
+        let reduced = ReducedBasis::new(&s.f.model, data, &base.theta);
         let mut screened: Vec<Candidate> = map_with_progress(
             &cands,
-            |(e, l)| screen(current, *e, l, data, base, &q),
+            |(e, l)| screen(current, *e, l, data, base, &q, reduced.as_ref()),
             |done| progress("screening", done, total),
         )
         .into_iter()

@@ -91,6 +91,21 @@ pub struct Evaluator {
     pairing: Pairing,
 }
 
+impl Evaluation {
+    /// The residual at θ of eigenpairs solved elsewhere (all of them candidates for
+    /// pairing), paired by `rule`: what [`Evaluator::evaluate`] returns for the same pairs.
+    pub fn of_pairs(
+        model: &Model,
+        data: &MeasuredData,
+        theta: &[f64],
+        eig: EigenPairs,
+        rule: Pairing,
+    ) -> Self {
+        let n_cand = eig.lambda.len();
+        residual_at(model, data, theta, eig, n_cand, rule)
+    }
+}
+
 /// ∂λ_k (per parameter) and ∂φ_k at every channel (channels × parameters).
 type Sensitivity = (Vec<f64>, Mat<f64>);
 
