@@ -256,16 +256,8 @@ fn predicted_decrease(a: &Mat<f64>, g: &faer::Col<f64>) -> Option<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::core::simulate::{Noise, simulated_measured_data};
-
-    fn lab() -> Description {
-        let text = std::fs::read_to_string(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/config/models/lab-frame.toml"
-        ))
-        .unwrap();
-        Description::File(toml::from_str(&text).unwrap())
-    }
+    use crate::core::diagnosis::fixtures::{NOISE, lab, spread_theta};
+    use crate::core::simulate::simulated_measured_data;
 
     /// Noise-free data of the lab frame with `kind@location = truth` and its bolts at θ
     /// scaled from nominal; the joint fit from the nominal θ and `u0` recovers the value and
@@ -276,17 +268,8 @@ mod tests {
         let mut with = spec.clone();
         effect.apply(&mut with, location, truth).unwrap();
         let model = with.build().unwrap();
-        let theta: Vec<f64> = model
-            .nominal_theta()
-            .iter()
-            .enumerate()
-            .map(|(i, t)| t * (0.8 + 0.05 * (i % 5) as f64))
-            .collect();
-        let noise = Noise {
-            frequency_cov: 0.01,
-            shape_nsd: 0.05,
-        };
-        let data = simulated_measured_data(&model, &theta, 9, noise, false, 1).unwrap();
+        let theta = spread_theta(&model);
+        let data = simulated_measured_data(&model, &theta, 9, NOISE, false, 1).unwrap();
         let coord = Coordinate {
             sign: effect.sign(),
             h: effect.step(&spec, location),

@@ -251,3 +251,37 @@ pub fn diagnose(
         enriched: model.current,
     })
 }
+
+/// Fixtures the diagnosis module's tests share.
+#[cfg(test)]
+mod fixtures {
+    use super::Description;
+    use crate::core::model::Model;
+    use crate::core::simulate::Noise;
+
+    /// The bundled lab frame's model file.
+    pub(super) fn lab() -> Description {
+        let text = std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/config/models/lab-frame.toml"
+        ))
+        .unwrap();
+        Description::File(toml::from_str(&text).unwrap())
+    }
+
+    /// The stated uncertainty of simulated data: 1 % frequency CoV, 5 % shape NSD.
+    pub(super) const NOISE: Noise = Noise {
+        frequency_cov: 0.01,
+        shape_nsd: 0.05,
+    };
+
+    /// The model's bolts spread from 0.8 to 1.0 of nominal.
+    pub(super) fn spread_theta(model: &Model) -> Vec<f64> {
+        model
+            .nominal_theta()
+            .iter()
+            .enumerate()
+            .map(|(i, t)| t * (0.8 + 0.05 * (i % 5) as f64))
+            .collect()
+    }
+}

@@ -418,18 +418,10 @@ fn residuals(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::core::diagnosis::fixtures::{NOISE, lab, spread_theta};
     use crate::core::diagnosis::{Description, effects};
-    use crate::core::simulate::{Noise, simulated_measured_data};
+    use crate::core::simulate::simulated_measured_data;
     use crate::core::updating::Evaluator;
-
-    fn lab() -> Description {
-        let text = std::fs::read_to_string(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/config/models/lab-frame.toml"
-        ))
-        .unwrap();
-        Description::File(toml::from_str(&text).unwrap())
-    }
 
     /// The lab frame with `kind@location = u`.
     fn with(spec: &Description, kind: &str, location: &str, u: f64) -> Model {
@@ -452,17 +444,8 @@ mod tests {
     fn reduced_solves_agree_with_full_solves() {
         let spec = lab();
         let model = spec.build().unwrap();
-        let theta: Vec<f64> = model
-            .nominal_theta()
-            .iter()
-            .enumerate()
-            .map(|(i, t)| t * (0.8 + 0.05 * (i % 5) as f64))
-            .collect();
-        let noise = Noise {
-            frequency_cov: 0.01,
-            shape_nsd: 0.05,
-        };
-        let data = simulated_measured_data(&model, &theta, 9, noise, true, 4).unwrap();
+        let theta = spread_theta(&model);
+        let data = simulated_measured_data(&model, &theta, 9, NOISE, true, 4).unwrap();
         let basis = ReducedBasis::new(&model, &data, &theta).expect("the lab frame is small");
         let cases = [
             ("added-mass", "B2.3"),
@@ -505,11 +488,7 @@ mod tests {
         let spec = lab();
         let model = spec.build().unwrap();
         let theta = model.nominal_theta();
-        let noise = Noise {
-            frequency_cov: 0.01,
-            shape_nsd: 0.05,
-        };
-        let data = simulated_measured_data(&model, &theta, 9, noise, false, 1).unwrap();
+        let data = simulated_measured_data(&model, &theta, 9, NOISE, false, 1).unwrap();
         let basis = ReducedBasis::new(&model, &data, &theta).unwrap();
         let h = effects::by_kind("splice").unwrap().step(&spec, "C2L.2");
         let candidate = with(&spec, "splice", "C2L.2", h);

@@ -256,7 +256,8 @@ pub(super) fn effect_of<'a>(effects: &'a [Box<dyn Effect>], kind: &str) -> &'a d
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::core::simulate::{Noise, simulated_measured_data};
+    use crate::core::diagnosis::fixtures::NOISE;
+    use crate::core::simulate::simulated_measured_data;
 
     fn named(effect: &'static str, location: &str, u: f64) -> Refit {
         Refit {
@@ -292,11 +293,7 @@ mod tests {
         let with = with_effects(&spec, &effects, &set.iter().collect::<Vec<_>>()).unwrap();
         let model = with.build().unwrap();
         let theta = model.nominal_theta();
-        let noise = Noise {
-            frequency_cov: 0.01,
-            shape_nsd: 0.05,
-        };
-        let data = simulated_measured_data(&model, &theta, 9, noise, true, 1).unwrap();
+        let data = simulated_measured_data(&model, &theta, 9, NOISE, true, 1).unwrap();
         let (eps, _) = reprofile(&spec, &effects, &mut set, &data, &theta).unwrap();
         assert!(eps.is_finite());
         assert_eq!(set[0].u, 2e4, "the splice keeps its value");
