@@ -59,6 +59,9 @@ pub(super) fn fit(
 /// ε at the profile point `u` of an effect: θ refitted from each of `starts` (the best
 /// kept: the fitted θ of the model without the effect can sit in a valley the effect's
 /// true value does not share), +∞ when the enriched model cannot be built or fitted.
+/// The starts run side by side on rayon's pool, each on its own evaluator (a cold
+/// evaluation depends on θ alone, so each fit is the one a shared evaluator gives): the
+/// refit that takes longest then uses the cores the others have left.
 pub(super) fn profile_point(
     spec: &Description,
     effect: &dyn Effect,
@@ -67,16 +70,22 @@ pub(super) fn profile_point(
     data: &MeasuredData,
     starts: &[&[f64]],
 ) -> (f64, Vec<f64>) {
+    use rayon::prelude::*;
     let mut best = (f64::INFINITY, starts[0].to_vec());
-    let Some((model, ev)) = with_effect(spec, effect, location, u) else {
+    let Some(model) = model_with(spec, effect, location, u) else {
         return best;
     };
-    let mut mm = ModeMatching::new(ev);
-    for t in starts {
-        if let Ok(r) = mm.run(&model, data, t, &mm_options())
-            && r.epsilon() < best.0
-        {
-            best = (r.epsilon(), r.theta);
+    let fits: Vec<Option<(f64, Vec<f64>)>> = starts
+        .par_iter()
+        .map(|t| {
+            let mut mm = ModeMatching::new(Evaluator::new(&model).ok()?);
+            let r = mm.run(&model, data, t, &mm_options()).ok()?;
+            Some((r.epsilon(), r.theta))
+        })
+        .collect();
+    for (eps, theta) in fits.into_iter().flatten() {
+        if eps < best.0 {
+            best = (eps, theta);
         }
     }
     best

@@ -25,6 +25,15 @@ const MAX_ITERATIONS: usize = 60;
 /// Largest change of `ln θ_i` or of `ln u` in one step (as mode matching's cap).
 const MAX_LOG_STEP: f64 = 2.0;
 
+/// θ is held within these multiples of its nominal value (and the model's own bounds). A
+/// connection far looser than its neighbouring members is a hinge, one far stiffer is rigid:
+/// beyond these the modes no longer change (on the space frame a strong-axis connection at
+/// 1e-6 of nominal moves no frequency by 1e-7 relative from its value at 1e-30), and a fit
+/// left free there walks `ln θ` towards ±∞ in capped steps (50 iterations of a splice's
+/// refit) while its Gauss–Newton model, linear in `ln θ`, keeps promising the decrease
+/// the other parameters could give.
+pub(super) const THETA_RANGE: (f64, f64) = (1e-6, 1e6);
+
 /// The effect's search coordinate `t` and its value `u`.
 #[derive(Clone, Copy)]
 pub(super) struct Coordinate {
@@ -98,12 +107,14 @@ impl Joint<'_> {
     /// fit has not converged within [`MAX_ITERATIONS`].
     pub(super) fn fit(&self, theta0: &[f64], t0: f64) -> Option<JointMinimum> {
         let mut cur = self.point(t0, theta0)?;
-        let bounds = LogBounds::new(&cur.model, None);
+        let bounds = LogBounds::new(&cur.model, Some(THETA_RANGE));
         let mut mu = 1e-3;
         let mut nu = 2.0;
         for _ in 0..MAX_ITERATIONS {
             let (a, g) = self.normal_equations(&mut cur)?;
-            if predicted_decrease(&a, &g).is_some_and(|d| d < EPS_TOL) {
+            if predicted_decrease(&a, &g, &self.box_of(&cur, &bounds, false))
+                .is_some_and(|d| d < EPS_TOL)
+            {
                 return Some(cur.minimum());
             }
             match self.damped_step(&cur, &bounds, &a, &g, &mut mu, &mut nu) {
@@ -189,13 +200,10 @@ impl Joint<'_> {
             for i in 0..=p {
                 damped[(i, i)] += *mu * a[(i, i)].max(1e-12 * dmax);
             }
-            let Ok(llt) = damped.llt(Side::Lower) else {
+            let Some(step) = boxed_minimum(&damped, g, &self.box_of(cur, bounds, true)) else {
                 (*mu, *nu) = (*mu * *nu, *nu * 2.0);
                 continue;
             };
-            let mut step = -g.clone();
-            llt.solve_in_place(step.as_mat_mut());
-            self.limit(&mut step, cur.t, theta, bounds);
             let pred = -(2.0 * (step.transpose() * g) + step.transpose() * (a * &step));
             let new: Vec<f64> = (0..p).map(|i| theta[i] * step[i].exp()).collect();
             if let Some(trial) = self.point(cur.t + step[p], &new) {
@@ -212,18 +220,72 @@ impl Joint<'_> {
         None
     }
 
-    /// The step scaled to the caps ([`MAX_LOG_STEP`], [`Coordinate::max_step`]) and its θ
-    /// part cut at the bounds.
-    fn limit(&self, step: &mut faer::Col<f64>, t: f64, theta: &[f64], bounds: &LogBounds) {
-        let p = theta.len();
-        let over = (0..p)
-            .map(|i| step[i].abs() / MAX_LOG_STEP)
-            .fold(step[p].abs() / self.coord.max_step(t), f64::max);
-        if over > 1.0 {
-            *step *= faer::Scale(1.0 / over);
+    /// The box a step from `cur` stays in: `ln θ` within `bounds`, and with `capped` each
+    /// component within its cap ([`MAX_LOG_STEP`], [`Coordinate::max_step`]).
+    fn box_of(&self, cur: &Point, bounds: &LogBounds, capped: bool) -> StepBox {
+        let theta = &cur.ev.theta;
+        let cap = |c: f64| if capped { c } else { f64::INFINITY };
+        let (mut lo, mut hi): (Vec<f64>, Vec<f64>) = theta
+            .iter()
+            .enumerate()
+            .map(|(i, th)| {
+                let u = th.ln();
+                (
+                    (bounds.lo[i] - u).max(-cap(MAX_LOG_STEP)),
+                    (bounds.hi[i] - u).min(cap(MAX_LOG_STEP)),
+                )
+            })
+            .unzip();
+        let t_cap = cap(self.coord.max_step(cur.t));
+        lo.push(-t_cap);
+        hi.push(t_cap);
+        StepBox { lo, hi }
+    }
+}
+
+/// Per-component limits of a step.
+struct StepBox {
+    lo: Vec<f64>,
+    hi: Vec<f64>,
+}
+
+/// The minimum of the quadratic model `2gᵀs + sᵀAs` within `b`, by active sets: the free
+/// components solved with the fixed ones moved to the right-hand side, and every free
+/// component found outside its limits fixed at the limit it crossed, until none is. A
+/// component that wants far beyond its limit (a θ whose effect has vanished, whose column
+/// of the Jacobian is nearly zero) is so held at the limit while the others take their
+/// full step: scaling the whole step down to its cap would stall them. `None` when `A` is
+/// not definite on the free components.
+fn boxed_minimum(a: &Mat<f64>, g: &faer::Col<f64>, b: &StepBox) -> Option<faer::Col<f64>> {
+    let n = g.nrows();
+    let mut fixed: Vec<Option<f64>> = vec![None; n];
+    loop {
+        let free: Vec<usize> = (0..n).filter(|&i| fixed[i].is_none()).collect();
+        let mut step = faer::Col::from_fn(n, |i| fixed[i].unwrap_or(0.0));
+        if !free.is_empty() {
+            let af = Mat::from_fn(free.len(), free.len(), |r, c| a[(free[r], free[c])]);
+            let mut rhs = Mat::from_fn(free.len(), 1, |r, _| {
+                let i = free[r];
+                -g[i]
+                    - (0..n)
+                        .map(|j| a[(i, j)] * fixed[j].unwrap_or(0.0))
+                        .sum::<f64>()
+            });
+            af.llt(Side::Lower).ok()?.solve_in_place(rhs.as_mut());
+            for (r, &i) in free.iter().enumerate() {
+                step[i] = rhs[(r, 0)];
+            }
         }
-        for (i, th) in theta.iter().enumerate() {
-            step[i] = bounds.clip(i, th.ln(), step[i]);
+        let crossed: Vec<usize> = free
+            .iter()
+            .copied()
+            .filter(|&i| step[i] < b.lo[i] || step[i] > b.hi[i])
+            .collect();
+        if crossed.is_empty() {
+            return Some(step);
+        }
+        for i in crossed {
+            fixed[i] = Some(step[i].clamp(b.lo[i], b.hi[i]));
         }
     }
 }
@@ -238,19 +300,19 @@ impl Point {
     }
 }
 
-/// The decrease of ε the undamped Gauss–Newton step predicts, `gᵀA⁻¹g` (`None` when `A` is
-/// singular to a tiny regularization).
-fn predicted_decrease(a: &Mat<f64>, g: &faer::Col<f64>) -> Option<f64> {
+/// The decrease of ε the undamped Gauss–Newton step predicts within `b` (`ln θ` within its
+/// bounds), `−(2gᵀs + sᵀAs)` (`None` when `A` is singular to a tiny regularization). A θ
+/// held at its bound drops out: its promised decrease cannot be had.
+fn predicted_decrease(a: &Mat<f64>, g: &faer::Col<f64>, b: &StepBox) -> Option<f64> {
     let n = g.nrows();
     let dmax = (0..n).map(|i| a[(i, i)]).fold(0.0_f64, f64::max);
     let mut reg = a.clone();
     for i in 0..n {
         reg[(i, i)] += 1e-12 * dmax;
     }
-    let llt = reg.llt(Side::Lower).ok()?;
-    let mut x = g.clone();
-    llt.solve_in_place(x.as_mat_mut());
-    Some((x.transpose() * g).max(0.0))
+    let s = boxed_minimum(&reg, g, b)?;
+    let pred = -(2.0 * (s.transpose() * g) + s.transpose() * (a * &s));
+    Some(pred.max(0.0))
 }
 
 #[cfg(test)]
@@ -295,6 +357,48 @@ mod tests {
         for (i, (a, b)) in m.theta.iter().zip(&theta).enumerate() {
             assert!((a / b - 1.0).abs() < 1e-2, "θ{}: {a} against {b}", i + 1);
         }
+    }
+
+    /// The boxed step is the minimum of the quadratic model within the box: unconstrained
+    /// `s = −A⁻¹g = (5, −4)`; with `s₀ ≤ 1` it is `(1, −2)` (∂q/∂s₁ = 0 and ∂q/∂s₀ < 0
+    /// at the bound: the KKT point), not the scaled step `(1, −0.8)`; a wide box leaves it
+    /// unconstrained. Exact arithmetic on small integers: tolerances of rounding.
+    #[test]
+    fn the_boxed_step_holds_a_component_at_its_limit_and_solves_the_rest() {
+        let a = Mat::from_fn(2, 2, |i, j| if i == j { 2.0 } else { 1.0 });
+        let g = faer::Col::from_fn(2, |i| [-6.0, 3.0][i]);
+        let wide = StepBox {
+            lo: vec![-10.0; 2],
+            hi: vec![10.0; 2],
+        };
+        let s = boxed_minimum(&a, &g, &wide).unwrap();
+        assert!(
+            (s[0] - 5.0).abs() < 1e-12 && (s[1] + 4.0).abs() < 1e-12,
+            "{s:?}"
+        );
+        let capped = StepBox {
+            lo: vec![-10.0; 2],
+            hi: vec![1.0, 10.0],
+        };
+        let s = boxed_minimum(&a, &g, &capped).unwrap();
+        assert!(
+            (s[0] - 1.0).abs() < 1e-12 && (s[1] + 2.0).abs() < 1e-12,
+            "{s:?}"
+        );
+        // Both limits crossed: both components held on them.
+        let both = StepBox {
+            lo: vec![-10.0, -1.5],
+            hi: vec![1.0, 10.0],
+        };
+        let s = boxed_minimum(&a, &g, &both).unwrap();
+        assert!(
+            (s[0] - 1.0).abs() < 1e-12 && (s[1] + 1.5).abs() < 1e-12,
+            "{s:?}"
+        );
+        // The predicted decrease is that of the step within the box, −(2gᵀs + sᵀAs) at
+        // (1, −2), not the unconstrained gᵀA⁻¹g = 42.
+        let pred = predicted_decrease(&a, &g, &capped).unwrap();
+        assert!((pred - 18.0).abs() < 1e-9, "{pred}");
     }
 
     /// An effect of one sign, fitted in `ln u`, from half its value.

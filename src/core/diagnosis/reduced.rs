@@ -68,6 +68,10 @@ pub(super) struct ReducedBasis<'a> {
     /// The lowest `p` modes (n × p, mass-normalized) and their eigenvalues.
     phi: Mat<f64>,
     lambda: Vec<f64>,
+    /// `KΦ` and `MΦ`, formed once: a Ritz vector's `K′φ` and `M′φ` are these and the
+    /// correction's products combined by its coefficients, plus the change at its DOFs.
+    k_phi: Mat<f64>,
+    m_phi: Mat<f64>,
     /// `K(θ̂)⁻¹`, dense.
     flex: Mat<f64>,
     n_cand: usize,
@@ -79,6 +83,14 @@ struct Changes {
     t: Vec<usize>,
     dk: Mat<f64>,
     dm: Mat<f64>,
+}
+
+/// The correction block `C` (K-orthonormal) and its products `KC`, `MC` with the fitted
+/// model's matrices.
+struct Correction {
+    c: Mat<f64>,
+    kc: Mat<f64>,
+    mc: Mat<f64>,
 }
 
 /// The entries of `K′ − K` and `M′ − M` as they are found.
@@ -143,11 +155,16 @@ impl<'a> ReducedBasis<'a> {
         let flex = kd.llt(Side::Lower).ok()?.inverse();
         let mut k = vec![0.0; model.k0().val().len()];
         model.shifted_stiffness_values(theta, 0.0, &mut k);
+        let m = mass_values(model);
+        let k_phi = pattern_times(model, &k, eig.phi.as_ref());
+        let m_phi = pattern_times(model, &m, eig.phi.as_ref());
         Some(Self {
             model,
             theta: theta.to_vec(),
             k,
-            m: mass_values(model),
+            m,
+            k_phi,
+            m_phi,
             phi: eig.phi,
             lambda: eig.lambda,
             flex,
@@ -163,9 +180,12 @@ impl<'a> ReducedBasis<'a> {
         let (a, b) = self.projected(&ch, &c);
         let (lambda, y) = lowest_pairs(a, b, self.n_cand)?;
         let p = self.lambda.len();
-        let mut phi = self.phi.as_ref() * y.subrows(0, p) + c.as_ref() * y.subrows(p, c.ncols());
+        let (yp, yc) = (y.subrows(0, p), y.subrows(p, c.c.ncols()));
+        let mut phi = self.phi.as_ref() * yp + c.c.as_ref() * yc;
+        let products = (&self.k_phi * yp + &c.kc * yc, &self.m_phi * yp + &c.mc * yc);
+        // (The residuals do not depend on the signs the convention then sets.)
+        let residual = residuals(products, &ch, phi.as_ref(), &lambda);
         sign_convention(&mut phi);
-        let residual = residuals(self.model, (&self.k, &self.m), &ch, phi.as_ref(), &lambda);
         let pairs = EigenPairs { lambda, phi };
         let ev = Evaluation::of_pairs(self.model, data, &self.theta, pairs, Pairing::default());
         let exact = ev.pairing.iter().all(|&k| residual[k] <= STRICT_RESIDUAL)
@@ -258,10 +278,10 @@ impl<'a> ReducedBasis<'a> {
 
     /// `C` made `K`-orthonormal (the fitted model's `K`), directions of `CᵀKC` below
     /// [`DEPENDENT`] of its largest dropped: the later blocks converge towards the same
-    /// truncated modes and become nearly dependent.
-    fn k_orthonormal(&self, c: Mat<f64>) -> Option<Mat<f64>> {
+    /// truncated modes and become nearly dependent. With it, `KC` and `MC`.
+    fn k_orthonormal(&self, c: Mat<f64>) -> Option<Correction> {
         let kc = pattern_times(self.model, &self.k, c.as_ref());
-        let mut g = c.transpose() * kc;
+        let mut g = c.transpose() * &kc;
         symmetrize(&mut g);
         let evd = g.self_adjoint_eigen(Side::Lower).ok()?;
         let sv = evd.S().column_vector();
@@ -275,11 +295,14 @@ impl<'a> ReducedBasis<'a> {
         let u = Mat::from_fn(sv.nrows(), keep.len(), |i, j| {
             evd.U()[(i, keep[j])] / sv[keep[j]].sqrt()
         });
-        Some(c * u)
+        let c = c * &u;
+        let mc = pattern_times(self.model, &self.m, c.as_ref());
+        Some(Correction { kc: kc * u, c, mc })
     }
 
     /// The projected pencil `(VᵀK′V, VᵀM′V)`, `V = [Φ, C]`.
-    fn projected(&self, ch: &Changes, c: &Mat<f64>) -> (Mat<f64>, Mat<f64>) {
+    fn projected(&self, ch: &Changes, cor: &Correction) -> (Mat<f64>, Mat<f64>) {
+        let c = &cor.c;
         let (p, r, q) = (self.lambda.len(), ch.t.len(), c.ncols());
         let w = Mat::from_fn(r, p + q, |a, col| {
             let i = ch.t[a];
@@ -291,12 +314,10 @@ impl<'a> ReducedBasis<'a> {
         });
         let mut a = w.transpose() * ch.dk.as_ref() * w.as_ref();
         let mut b = w.transpose() * ch.dm.as_ref() * w.as_ref();
-        let kc = pattern_times(self.model, &self.k, c.as_ref());
-        let mc = pattern_times(self.model, &self.m, c.as_ref());
-        let ckc = c.transpose() * kc.as_ref();
-        let cmc = c.transpose() * mc.as_ref();
-        let pkc = self.phi.transpose() * kc;
-        let pmc = self.phi.transpose() * mc;
+        let ckc = c.transpose() * &cor.kc;
+        let cmc = c.transpose() * &cor.mc;
+        let pkc = self.phi.transpose() * &cor.kc;
+        let pmc = self.phi.transpose() * &cor.mc;
         for k in 0..p {
             a[(k, k)] += self.lambda[k];
             b[(k, k)] += 1.0;
@@ -381,16 +402,13 @@ fn lowest_pairs(a: Mat<f64>, b: Mat<f64>, want: usize) -> Option<(Vec<f64>, Mat<
 }
 
 /// `‖K′φ − λM′φ‖ / ‖K′φ‖` of each pair on the candidate's own matrices (condensed onto the
-/// fitted model's DOFs): the fitted model's `K`, `M` (values `k`, `m`) plus the changes.
+/// fitted model's DOFs), from `(Kφ, Mφ)` with the fitted model's matrices plus the changes.
 fn residuals(
-    model: &Model,
-    (k, m): (&[f64], &[f64]),
+    (mut kphi, mut mphi): (Mat<f64>, Mat<f64>),
     ch: &Changes,
     phi: MatRef<'_, f64>,
     lambda: &[f64],
 ) -> Vec<f64> {
-    let mut kphi = pattern_times(model, k, phi);
-    let mut mphi = pattern_times(model, m, phi);
     let phi_t = Mat::from_fn(ch.t.len(), phi.ncols(), |a, c| phi[(ch.t[a], c)]);
     let (dkphi, dmphi) = (
         ch.dk.as_ref() * phi_t.as_ref(),

@@ -26,6 +26,18 @@ pub(super) fn workers() -> usize {
     rayon::current_num_threads().clamp(1, 8)
 }
 
+/// faer's parallelism for the basis's dense products: every core when the solve runs
+/// alone, the calling thread when it already runs on one of rayon's workers (a candidate
+/// among many, a restart beside another). There the other workers are busy with their own
+/// solves, and a parallel product waits at its barrier for threads that do not come.
+fn gemm_parallelism() -> Par {
+    if rayon::current_thread_index().is_some() {
+        Par::Seq
+    } else {
+        Par::rayon(0)
+    }
+}
+
 /// One worker's scratch for its share of a block solve: faer's stack, and the share in the
 /// reordered numbering.
 pub(super) struct SolveScratch {
@@ -169,7 +181,7 @@ impl Basis {
             self.mv.subcols(0, len),
             self.kv.subcols(0, len),
         );
-        let par = Par::rayon(0);
+        let par = gemm_parallelism();
         let mut c = Mat::zeros(len, r);
         let mut c_sum = Mat::<f64>::zeros(len, r);
         for _ in 0..2 {
@@ -193,7 +205,7 @@ impl Basis {
     /// The second SVQB, on the block already transformed by the first (unit scales), and its
     /// result appended to `V`, `MV` and `KV`.
     fn append_orthonormalized(&mut self, vb: &Mat<f64>, mvb: &Mat<f64>, kvb: &Mat<f64>) {
-        let par = Par::rayon(0);
+        let par = gemm_parallelism();
         let ones = vec![1.0; vb.ncols()];
         if let Some(t2) = svqb(vb.as_ref(), mvb.as_ref(), &ones, 0.5, vb.ncols()) {
             let r2 = t2.ncols();
@@ -245,7 +257,7 @@ fn transformed(
     let mut vb = Mat::zeros(n, t.ncols());
     let mut mvb = Mat::zeros(n, t.ncols());
     let mut kvb = Mat::zeros(n, t.ncols());
-    let par = Par::rayon(0);
+    let par = gemm_parallelism();
     for (dst, src) in [(&mut vb, w), (&mut mvb, mw), (&mut kvb, kw)] {
         matmul(
             dst.as_mut(),
