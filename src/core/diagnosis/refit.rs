@@ -156,40 +156,85 @@ impl Profile<'_> {
             Sign::Positive => 0.05 * u,
             Sign::Any => 0.05 * u.abs().max(coord.h),
         };
-        let (em, ep) = (self.at(u - du, false).0, self.at(u + du, false).0);
+        let (em, ep) = self.neighbours(u - du, u + du);
         Laplace {
             curvature: (ep - 2.0 * eps + em) / (du * du),
             lower_neighbour: em.min(ep) < eps - PROFILE_RESOLUTION,
         }
     }
+
+    /// `self.at(a, false)` then `self.at(b, false)`, the two fits run side by side. Both
+    /// start from the best point so far, as they would in turn, unless the first finds a new
+    /// best: then the second is fitted again from it, as in turn.
+    fn neighbours(&self, a: f64, b: f64) -> (f64, f64) {
+        if !self.best.borrow().0.is_finite() {
+            return (self.at(a, false).0, self.at(b, false).0);
+        }
+        let last = self.best.borrow().1.clone();
+        let (spec, effect, location, data) = (self.spec, self.effect, self.location, self.data);
+        let fit = |u: f64| profile_point(spec, effect, location, u, data, &[&last]);
+        let (ra, rb) = rayon::join(|| fit(a), || fit(b));
+        let ea = ra.0;
+        if ea < self.best.borrow().0 {
+            *self.best.borrow_mut() = ra;
+            return (ea, self.at(b, false).0);
+        }
+        let eb = rb.0;
+        if eb < self.best.borrow().0 {
+            *self.best.borrow_mut() = rb;
+        }
+        (ea, eb)
+    }
 }
 
 /// `f` over `items` on rayon's pool (results in item order); `progress(done)` on the
-/// calling thread as items finish.
+/// calling thread as items finish. The items are dealt in order, one at a time, to
+/// whichever worker is free, so the first items start first: a shortlist is best first
+/// and its costly refits are near its head, where rayon's halving of the range could leave
+/// one of them to start last.
 pub(super) fn map_with_progress<T: Sync, R: Send>(
     items: &[T],
     f: impl Fn(&T) -> R + Sync,
     mut progress: impl FnMut(usize),
 ) -> Vec<R> {
-    use rayon::prelude::*;
+    use std::sync::Mutex;
+    use std::sync::atomic::{AtomicUsize, Ordering};
     let (tx, rx) = std::sync::mpsc::channel::<()>();
-    let f = &f;
+    let slots: Vec<Mutex<Option<R>>> = items.iter().map(|_| Mutex::new(None)).collect();
+    let next = AtomicUsize::new(0);
+    let workers = rayon::current_num_threads().clamp(1, items.len().max(1));
+    let (f, slots, next) = (&f, &slots, &next);
     std::thread::scope(|scope| {
         let work = scope.spawn(move || {
-            items
-                .par_iter()
-                .map_with(tx, |tx, item| {
-                    let r = f(item);
-                    let _ = tx.send(());
-                    r
-                })
-                .collect::<Vec<R>>()
+            rayon::scope(|s| {
+                for _ in 0..workers {
+                    let tx = tx.clone();
+                    s.spawn(move |_| {
+                        loop {
+                            let i = next.fetch_add(1, Ordering::Relaxed);
+                            let Some(item) = items.get(i) else { break };
+                            let r = f(item);
+                            *slots[i].lock().unwrap_or_else(|p| p.into_inner()) = Some(r);
+                            let _ = tx.send(());
+                        }
+                    });
+                }
+            });
         });
         for (done, ()) in rx.iter().enumerate() {
             progress(done + 1);
         }
         work.join().unwrap_or_else(|p| std::panic::resume_unwind(p))
-    })
+    });
+    slots
+        .iter()
+        .map(|m| {
+            m.lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .take()
+                .expect("every item is mapped")
+        })
+        .collect()
 }
 
 /// `spec` with `named` added at their values.

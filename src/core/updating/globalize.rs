@@ -39,12 +39,12 @@ impl ModeMatching {
         self.globalize(model, data, theta0, opts, 1)
     }
 
-    /// [`ModeMatching::run_global`] with the restarts run as many at a time as rayon has
-    /// threads, each on an evaluator of its own and without progress reports. A cold
-    /// evaluation depends on θ alone, so the result is the sequential one; an evaluator with
-    /// warm starts (whose solves depend on the last one) runs them in turn. Restarts run
-    /// beside one that is accepted are wasted, so this is for one-off fits (`diagnose`'s
-    /// first), not for a tracker's.
+    /// [`ModeMatching::run_global`] with the run from `theta0` and every restart started at
+    /// once on rayon's pool, each on an evaluator of its own and without progress reports;
+    /// a run is not started once an earlier one is accepted. A cold evaluation depends on θ
+    /// alone, so the result is the sequential one; an evaluator with warm starts (whose
+    /// solves depend on the last one) runs them in turn. Runs beside one that is accepted
+    /// are wasted, so this is for one-off fits (`diagnose`'s first), not for a tracker's.
     pub fn run_global_parallel(
         &mut self,
         model: &Model,
@@ -60,7 +60,9 @@ impl ModeMatching {
         self.globalize(model, data, theta0, opts, batch)
     }
 
-    /// The globalization, its restarts `batch` at a time.
+    /// The globalization: the run from `theta0`, then the restarts in order until one is
+    /// accepted, on this evaluator (`batch` 1); with `batch` > 1 all at once
+    /// ([`Self::all_runs`]), chosen among in the same order.
     fn globalize(
         &mut self,
         model: &Model,
@@ -74,60 +76,80 @@ impl ModeMatching {
         // tracker's cold starts and the diagnosis's fits keep their behaviour; `update`
         // searches on it, see [`super::strategy::search_reason`].)
         let good = |r: &ModeMatchingResult| r.converged() && r.epsilon() <= bound;
-        let first = self.run(model, data, theta0, opts)?;
+        let mut runs = if batch > 1 {
+            self.all_runs(model, data, theta0, opts, &good)
+        } else {
+            Vec::new()
+        }
+        .into_iter();
+        let mut next = |me: &mut Self, start: &[f64]| {
+            runs.next()
+                .flatten()
+                .unwrap_or_else(|| me.run(model, data, start, opts))
+        };
+        let first = next(self, theta0)?;
         if good(&first) {
             return Ok((first, StartPath::Given));
         }
         let mut best = (first, StartPath::Given);
-        for values in RESTART_STARTS.chunks(batch) {
-            for (value, r) in values.iter().zip(self.restarts(model, data, values, opts)) {
-                // A start the solver cannot handle (an eigen solve that fails at its θ) is a
-                // bad start, not a failed update.
-                let Some(r) = r else {
-                    continue;
-                };
-                let path = StartPath::Restart { value: *value };
-                if good(&r) {
-                    return Ok((r, path));
-                }
-                let better = match (r.converged(), best.0.converged()) {
-                    (true, false) => true,
-                    (false, true) => false,
-                    _ => r.epsilon() < best.0.epsilon(),
-                };
-                if better {
-                    best = (r, path);
-                }
+        for value in RESTART_STARTS {
+            // A start the solver cannot handle (an eigen solve that fails at its θ) is a bad
+            // start, not a failed update.
+            let Ok(r) = next(self, &uniform_start(model, value)) else {
+                continue;
+            };
+            let path = StartPath::Restart { value };
+            if good(&r) {
+                return Ok((r, path));
+            }
+            let better = match (r.converged(), best.0.converged()) {
+                (true, false) => true,
+                (false, true) => false,
+                _ => r.epsilon() < best.0.epsilon(),
+            };
+            if better {
+                best = (r, path);
             }
         }
         Ok(best)
     }
 
-    /// The runs from the uniform starts `values` (in order; `None` for a run that failed):
-    /// on this evaluator for one, in parallel on evaluators of their own for more.
-    fn restarts(
-        &mut self,
+    /// The run from `theta0` and every restart at once on rayon's pool, each on an
+    /// evaluator of its own (in order; `None` for a run not started because an earlier one
+    /// was already accepted). Work-stealing keeps both cores busy to the end, where runs
+    /// paired in fixed batches waited for the longer of each pair.
+    fn all_runs(
+        &self,
         model: &Model,
         data: &MeasuredData,
-        values: &[f64],
+        theta0: &[f64],
         opts: &ModeMatchingOptions,
-    ) -> Vec<Option<ModeMatchingResult>> {
+        good: &(dyn Fn(&ModeMatchingResult) -> bool + Sync),
+    ) -> Vec<Option<Result<ModeMatchingResult, UpdateError>>> {
         use rayon::prelude::*;
-        if let [value] = values {
-            return vec![
-                self.run(model, data, &uniform_start(model, *value), opts)
-                    .ok(),
-            ];
-        }
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        let starts: Vec<Vec<f64>> = std::iter::once(theta0.to_vec())
+            .chain(RESTART_STARTS.iter().map(|&v| uniform_start(model, v)))
+            .collect();
+        let accepted = AtomicUsize::new(usize::MAX);
         let pairing = self.evaluator.pairing();
-        values
+        starts
             .par_iter()
-            .map(|&value| {
-                let mut evaluator = Evaluator::new(model).ok()?;
-                evaluator.set_pairing(pairing);
-                ModeMatching::new(evaluator)
-                    .run(model, data, &uniform_start(model, value), opts)
-                    .ok()
+            .enumerate()
+            .map(|(i, start)| {
+                if accepted.load(Ordering::Relaxed) < i {
+                    return None;
+                }
+                let run = Evaluator::new(model)
+                    .map_err(UpdateError::from)
+                    .and_then(|mut ev| {
+                        ev.set_pairing(pairing);
+                        ModeMatching::new(ev).run(model, data, start, opts)
+                    });
+                if run.as_ref().is_ok_and(good) {
+                    accepted.fetch_min(i, Ordering::Relaxed);
+                }
+                Some(run)
             })
             .collect()
     }
