@@ -32,7 +32,7 @@ const MAX_LOG_STEP: f64 = 2.0;
 /// left free there walks `ln θ` towards ±∞ in capped steps (50 iterations of a splice's
 /// refit) while its Gauss–Newton model, linear in `ln θ`, keeps promising the decrease
 /// the other parameters could give.
-pub(super) const THETA_RANGE: (f64, f64) = (1e-6, 1e6);
+const THETA_RANGE: (f64, f64) = (1e-6, 1e6);
 
 /// The effect's search coordinate `t` and its value `u`.
 #[derive(Clone, Copy)]

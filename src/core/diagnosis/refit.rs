@@ -115,9 +115,7 @@ impl Profile<'_> {
             &[&last]
         };
         let r = profile_point(self.spec, self.effect, self.location, u, self.data, starts);
-        if r.0 < self.best.borrow().0 {
-            *self.best.borrow_mut() = r.clone();
-        }
+        self.remember(&r);
         if all {
             *self.from_all.borrow_mut() = Some((u, r.0, r.1.clone()));
         }
@@ -174,16 +172,20 @@ impl Profile<'_> {
         let (spec, effect, location, data) = (self.spec, self.effect, self.location, self.data);
         let fit = |u: f64| profile_point(spec, effect, location, u, data, &[&last]);
         let (ra, rb) = rayon::join(|| fit(a), || fit(b));
-        let ea = ra.0;
-        if ea < self.best.borrow().0 {
-            *self.best.borrow_mut() = ra;
-            return (ea, self.at(b, false).0);
+        if self.remember(&ra) {
+            return (ra.0, self.at(b, false).0);
         }
-        let eb = rb.0;
-        if eb < self.best.borrow().0 {
-            *self.best.borrow_mut() = rb;
+        self.remember(&rb);
+        (ra.0, rb.0)
+    }
+
+    /// `r` kept as the best point if its ε is the lowest so far; whether it was.
+    fn remember(&self, r: &(f64, Vec<f64>)) -> bool {
+        let lower = r.0 < self.best.borrow().0;
+        if lower {
+            *self.best.borrow_mut() = r.clone();
         }
-        (ea, eb)
+        lower
     }
 }
 

@@ -36,7 +36,7 @@ impl ModeMatching {
         theta0: &[f64],
         opts: &ModeMatchingOptions,
     ) -> Result<(ModeMatchingResult, StartPath), UpdateError> {
-        self.globalize(model, data, theta0, opts, 1)
+        self.globalize(model, data, theta0, opts, false)
     }
 
     /// [`ModeMatching::run_global`] with the run from `theta0` and every restart started at
@@ -52,31 +52,27 @@ impl ModeMatching {
         theta0: &[f64],
         opts: &ModeMatchingOptions,
     ) -> Result<(ModeMatchingResult, StartPath), UpdateError> {
-        let batch = if self.evaluator.warm() {
-            1
-        } else {
-            rayon::current_num_threads().max(1)
-        };
-        self.globalize(model, data, theta0, opts, batch)
+        let at_once = !self.evaluator.warm() && rayon::current_num_threads() > 1;
+        self.globalize(model, data, theta0, opts, at_once)
     }
 
     /// The globalization: the run from `theta0`, then the restarts in order until one is
-    /// accepted, on this evaluator (`batch` 1); with `batch` > 1 all at once
-    /// ([`Self::all_runs`]), chosen among in the same order.
+    /// accepted, on this evaluator; with `at_once` all at once ([`Self::all_runs`]), chosen
+    /// among in the same order.
     fn globalize(
         &mut self,
         model: &Model,
         data: &MeasuredData,
         theta0: &[f64],
         opts: &ModeMatchingOptions,
-        batch: usize,
+        at_once: bool,
     ) -> Result<(ModeMatchingResult, StartPath), UpdateError> {
         let bound = chi2_bound(data.n_data(), model.n_params());
         // Converged within its bound. (A fit paired across a crossing is accepted here: the
         // tracker's cold starts and the diagnosis's fits keep their behaviour; `update`
         // searches on it, see [`super::strategy::search_reason`].)
         let good = |r: &ModeMatchingResult| r.converged() && r.epsilon() <= bound;
-        let mut runs = if batch > 1 {
+        let mut runs = if at_once {
             self.all_runs(model, data, theta0, opts, &good)
         } else {
             Vec::new()
@@ -117,7 +113,7 @@ impl ModeMatching {
     /// The run from `theta0` and every restart at once on rayon's pool, each on an
     /// evaluator of its own (in order; `None` for a run not started because an earlier one
     /// was already accepted). Work-stealing keeps both cores busy to the end, where runs
-    /// paired in fixed batches waited for the longer of each pair.
+    /// run in pairs waited for the longer of each pair.
     fn all_runs(
         &self,
         model: &Model,
