@@ -48,6 +48,14 @@ pub trait Effect: Send + Sync {
     fn coordinate(&self, value: f64) -> f64 {
         value
     }
+    /// The label, in the model with the effect added at `location`, of the DOF labelled
+    /// `label` without it: the same label unless the effect renames the node it is at (a
+    /// splice splits a member, and its mesh nodes move to the parts). Lets a reduced solve
+    /// match the two models' DOFs.
+    fn dof_label_after(&self, d: &Description, location: &str, label: &str) -> String {
+        let _ = (d, location);
+        label.to_string()
+    }
 }
 
 impl<T: FileEffect> Effect for T {
@@ -82,6 +90,12 @@ impl<T: FileEffect> Effect for T {
     }
     fn coordinate(&self, value: f64) -> f64 {
         FileEffect::coordinate(self, value)
+    }
+    fn dof_label_after(&self, d: &Description, location: &str, label: &str) -> String {
+        match d.spec() {
+            Some(spec) => FileEffect::dof_label_after(self, spec, location, label),
+            None => label.to_string(),
+        }
     }
 }
 
@@ -120,6 +134,11 @@ pub trait FileEffect: Send + Sync {
     /// The internal coordinate of a reported value (`--inject`).
     fn coordinate(&self, value: f64) -> f64 {
         value
+    }
+    /// [`Effect::dof_label_after`].
+    fn dof_label_after(&self, spec: &ModelSpec, location: &str, label: &str) -> String {
+        let _ = (spec, location);
+        label.to_string()
     }
 }
 

@@ -486,4 +486,26 @@ impl FileEffect for Splice {
     fn coordinate(&self, value: f64) -> f64 {
         1.0 / value
     }
+    /// The member's mesh nodes move to its parts: `<member>.<j>` becomes `<member>~a.<j>`,
+    /// `<member>.splice<k>` or `<member>~b.<j − k>`; a DOF keeps its component.
+    fn dof_label_after(&self, spec: &ModelSpec, location: &str, label: &str) -> String {
+        let split = match &spec.space_frame {
+            Some(sf) => space::splice_member(sf, location),
+            None => Self::split(spec, location).map(|(mi, k)| (spec.members[mi].name.as_str(), k)),
+        };
+        let (Some((member, k)), Some((at, component))) = (split, label.rsplit_once('.')) else {
+            return label.to_string();
+        };
+        if !at.starts_with(member) {
+            return label.to_string();
+        }
+        let mut at = at.to_string();
+        let (a, node, b) = (
+            format!("{member}~a"),
+            format!("{member}.splice{k}"),
+            format!("{member}~b"),
+        );
+        space::relocate_split(&mut at, member, k, (&a, &node, &b));
+        format!("{at}.{component}")
+    }
 }

@@ -9,6 +9,16 @@ pub(super) struct Fit {
     pub(super) result: ModeMatchingResult,
 }
 
+/// Every fit of the diagnosis (mode matching and the joint fit) holds θ within these
+/// multiples of its nominal value (and the model's own bounds). A connection far looser
+/// than its neighbouring members is a hinge, one far stiffer is rigid: beyond these the
+/// modes no longer change (on the space frame a strong-axis connection at 1e-6 of nominal
+/// moves no frequency by 1e-7 relative from its value at 1e-30), and a fit left free there
+/// walks `ln θ` towards ±∞ in capped steps (50 iterations of a splice's refit, and of the
+/// profile points that check it) while its Gauss–Newton model, linear in `ln θ`, keeps
+/// promising the decrease the other parameters could give.
+pub(super) const THETA_RANGE: (f64, f64) = (1e-6, 1e6);
+
 pub(super) fn mm_options() -> ModeMatchingOptions {
     ModeMatchingOptions {
         step: StepControl::LevenbergMarquardt,
@@ -22,7 +32,7 @@ pub(super) fn mm_options() -> ModeMatchingOptions {
         // 20–50 iterations and stall.
         eps_tol: Some(1e-3),
         error_tol: None,
-        bounds: None,
+        bounds: Some(THETA_RANGE),
     }
 }
 

@@ -25,15 +25,6 @@ const MAX_ITERATIONS: usize = 60;
 /// Largest change of `ln θ_i` or of `ln u` in one step (as mode matching's cap).
 const MAX_LOG_STEP: f64 = 2.0;
 
-/// θ is held within these multiples of its nominal value (and the model's own bounds). A
-/// connection far looser than its neighbouring members is a hinge, one far stiffer is rigid:
-/// beyond these the modes no longer change (on the space frame a strong-axis connection at
-/// 1e-6 of nominal moves no frequency by 1e-7 relative from its value at 1e-30), and a fit
-/// left free there walks `ln θ` towards ±∞ in capped steps (50 iterations of a splice's
-/// refit) while its Gauss–Newton model, linear in `ln θ`, keeps promising the decrease
-/// the other parameters could give.
-const THETA_RANGE: (f64, f64) = (1e-6, 1e6);
-
 /// The effect's search coordinate `t` and its value `u`.
 #[derive(Clone, Copy)]
 pub(super) struct Coordinate {

@@ -52,7 +52,7 @@ use crate::core::updating::{
 };
 pub use description::Description;
 use effects::{Effect, Sign};
-use fit::{build, fit, localize, model_with, profile_point, with_effect};
+use fit::{THETA_RANGE, build, fit, localize, model_with, profile_point, with_effect};
 use reduced::ReducedBasis;
 use refit::{effect_of, map_with_progress, refit, reprofile, with_effects};
 use screen::{candidates_of, screen};
@@ -259,14 +259,21 @@ mod fixtures {
     use crate::core::model::Model;
     use crate::core::simulate::Noise;
 
+    /// A bundled model file.
+    fn bundled(name: &str) -> Description {
+        let path = format!("{}/config/models/{name}", env!("CARGO_MANIFEST_DIR"));
+        let text = std::fs::read_to_string(path).unwrap();
+        Description::File(toml::from_str(&text).unwrap())
+    }
+
     /// The bundled lab frame's model file.
     pub(super) fn lab() -> Description {
-        let text = std::fs::read_to_string(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/config/models/lab-frame.toml"
-        ))
-        .unwrap();
-        Description::File(toml::from_str(&text).unwrap())
+        bundled("lab-frame.toml")
+    }
+
+    /// The bundled space frame's model file.
+    pub(super) fn space_frame() -> Description {
+        bundled("space-frame.toml")
     }
 
     /// The stated uncertainty of simulated data: 1 % frequency CoV, 5 % shape NSD.

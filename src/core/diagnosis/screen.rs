@@ -78,7 +78,8 @@ fn evaluate_with(
     reduced: Option<&ReducedBasis>,
 ) -> Option<Evaluation> {
     let model = model_with(spec, effect, location, u)?;
-    if let Some(ev) = reduced.and_then(|b| b.evaluate(&model, data)) {
+    let relabel = |label: &str| effect.dof_label_after(spec, location, label);
+    if let Some(ev) = reduced.and_then(|b| b.evaluate(&model, data, &relabel)) {
         return Some(ev);
     }
     let mut ev = Evaluator::new(&model).ok()?;

@@ -277,6 +277,14 @@ fn splice_split<'a>(sf: &SpaceFrameSpec, location: &'a str) -> Option<(usize, us
     (k >= 1 && k < sf.members[mi].elements && BENDING.contains(&axis)).then_some((mi, k, axis))
 }
 
+/// The member a splice at `location` splits and the mesh node `k` it splits it at.
+pub(super) fn splice_member<'s>(
+    sf: &'s SpaceFrameSpec,
+    location: &str,
+) -> Option<(&'s str, usize)> {
+    splice_split(sf, location).map(|(mi, k, _)| (sf.members[mi].name.as_str(), k))
+}
+
 /// Splits the member at mesh node k into two members joined there by a spring `1/u` about
 /// `axis` (rigid about the other axes): the new node sits where the mesh node was (joint
 /// offsets included), both parts keep the member's local axes, and everything that named

@@ -22,8 +22,7 @@
 mod gauss_newton;
 mod types;
 
-use faer::linalg::solvers::Solve;
-use faer::{Mat, Side};
+use faer::Mat;
 
 use super::UpdateError;
 use super::bounds::LogBounds;
@@ -33,7 +32,7 @@ use crate::core::model::Model;
 pub use gauss_newton::FirstOrder;
 use gauss_newton::{
     FreeStep, clipped, covariance_from_jacobian, free_gauss_newton, gauss_newton_step,
-    normal_equations, step_in_std, within_std,
+    normal_equations, step_in_std, step_within_bounds, within_std,
 };
 pub use types::{
     FinalStep, IterationRecord, ModeMatchingOptions, ModeMatchingResult, ProgressFn, StepControl,
@@ -306,19 +305,18 @@ impl ModeMatching {
     ) -> Result<bool, UpdateError> {
         let p = g.nrows();
         let theta = st.ev.theta.clone();
+        let u: Vec<f64> = theta.iter().map(|t| t.ln()).collect();
         let dmax = (0..p).map(|i| a[(i, i)]).fold(0.0_f64, f64::max);
         while st.mu < 1e16 {
             let mut damped = a.clone();
             for i in 0..p {
                 damped[(i, i)] += st.mu * a[(i, i)].max(1e-12 * dmax);
             }
-            let Ok(llt) = damped.llt(Side::Lower) else {
+            let Some(mut step) = step_within_bounds(&damped, g, bounds, &u) else {
                 st.mu *= st.nu;
                 st.nu *= 2.0;
                 continue;
             };
-            let mut step = -g.clone();
-            llt.solve_in_place(step.as_mat_mut());
             let cap = (0..p).map(|i| step[i].abs()).fold(0.0, f64::max);
             if cap > MAX_LOG_STEP {
                 step *= faer::Scale(MAX_LOG_STEP / cap);
