@@ -180,6 +180,7 @@ fn options(args: &UpdateArgs) -> Result<ModeMatchingOptions> {
         eps_tol: args.eps_tol,
         error_tol: None,
         bounds: parse_bounds(&args.bounds)?,
+        ..ModeMatchingOptions::default()
     })
 }
 

@@ -33,6 +33,9 @@ pub(super) fn mm_options() -> ModeMatchingOptions {
         eps_tol: Some(1e-3),
         error_tol: None,
         bounds: Some(THETA_RANGE),
+        // Held, not cut: an insensitive θ on its bound would otherwise shrink every other
+        // component's step to its own scale.
+        bound_step: BoundStep::Hold,
     }
 }
 

@@ -47,7 +47,7 @@ use crate::core::modal::ModalError;
 use crate::core::model::{Model, ModelError};
 use crate::core::stats::chi2_1_upper_quantile;
 use crate::core::updating::{
-    Evaluation, Evaluator, FinalStep, MeasuredData, ModeMatching, ModeMatchingOptions,
+    BoundStep, Evaluation, Evaluator, FinalStep, MeasuredData, ModeMatching, ModeMatchingOptions,
     ModeMatchingResult, StepControl, UpdateError,
 };
 pub use description::Description;

@@ -16,8 +16,8 @@ pub use bounds::{AtBound, LogBounds};
 pub use data::{MeasuredData, RawMode, TargetMode, TargetShape, Weighting};
 pub use globalize::{RESTART_STARTS, StartPath};
 pub use mode_matching::{
-    FinalStep, FirstOrder, ModeMatching, ModeMatchingOptions, ModeMatchingResult, StepControl,
-    Termination,
+    BoundStep, FinalStep, FirstOrder, ModeMatching, ModeMatchingOptions, ModeMatchingResult,
+    StepControl, Termination,
 };
 pub use residual::{Evaluation, Evaluator, Pairing};
 

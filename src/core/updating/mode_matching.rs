@@ -31,12 +31,12 @@ use super::residual::{Evaluation, Evaluator};
 use crate::core::model::Model;
 pub use gauss_newton::FirstOrder;
 use gauss_newton::{
-    FreeStep, clipped, covariance_from_jacobian, free_gauss_newton, gauss_newton_step,
-    normal_equations, step_in_std, step_within_bounds, within_std,
+    FreeStep, cholesky_step, clipped, covariance_from_jacobian, free_gauss_newton,
+    gauss_newton_step, normal_equations, step_in_std, step_within_bounds, within_std,
 };
 pub use types::{
-    FinalStep, IterationRecord, ModeMatchingOptions, ModeMatchingResult, ProgressFn, StepControl,
-    Termination,
+    BoundStep, FinalStep, IterationRecord, ModeMatchingOptions, ModeMatchingResult, ProgressFn,
+    StepControl, Termination,
 };
 
 /// Largest change of ln θ_i in one Levenberg–Marquardt step (a factor e² ≈ 7.4): a safety cap
@@ -197,7 +197,7 @@ impl ModeMatching {
             let gn = clipped(bounds, &theta, &fs.step);
             within_std(fs, &gn, STALL_WITHIN_STD, data, &st.ev)
         });
-        if self.damped_step(model, data, bounds, &a, &g, st)? {
+        if self.damped_step(model, data, (bounds, opts.bound_step), &a, &g, st)? {
             // The contraction of the next iterate is measured against this step only if
             // the step taken was (within 10 %) the undamped one.
             let undamped_taken = undamped.as_ref().is_some_and(|fs| {
@@ -298,7 +298,7 @@ impl ModeMatching {
         &mut self,
         model: &Model,
         data: &MeasuredData,
-        bounds: &LogBounds,
+        (bounds, rule): (&LogBounds, BoundStep),
         a: &Mat<f64>,
         g: &faer::Col<f64>,
         st: &mut Iterate,
@@ -312,7 +312,11 @@ impl ModeMatching {
             for i in 0..p {
                 damped[(i, i)] += st.mu * a[(i, i)].max(1e-12 * dmax);
             }
-            let Some(mut step) = step_within_bounds(&damped, g, bounds, &u) else {
+            let solved = match rule {
+                BoundStep::Cut => cholesky_step(&damped, g),
+                BoundStep::Hold => step_within_bounds(&damped, g, bounds, &u),
+            };
+            let Some(mut step) = solved else {
                 st.mu *= st.nu;
                 st.nu *= 2.0;
                 continue;

@@ -24,13 +24,14 @@
 //! own relaxed solves) or any mode [`LOOSE_RESIDUAL`] (enough for pairing) is solved in
 //! full, as is one that touches more than [`changes::REDUCED_MAX_TOUCHED`] DOFs.
 //!
-//! A candidate may renumber the DOFs and add a few (a splice moves a member's mesh nodes
-//! to its two parts and adds the hinge's DOF; a support flexibility frees a restrained one): its DOFs are matched to the fitted model's
-//! by label (through the effect's renaming), and its `s` new DOFs are appended, where the
-//! fitted model has no stiffness or mass. Their whole rows are then the change, and the
-//! basis is `V = [Φ, C, E_N]` with `E_N` the unit vectors of the new DOFs; the correction
-//! `C` covers the fitted model's DOFs that the change couples to them. A new DOF must be
-//! coupled to those DOFs (a splice's hinge is), or `K′` would be singular.
+//! A candidate may renumber the DOFs and add a few: a splice moves a member's mesh nodes
+//! to its two parts and adds the hinge's DOF, a support flexibility frees a restrained one.
+//! Its DOFs are matched to the fitted model's by label (through the effect's renaming,
+//! [`changes`]), and its `s` new DOFs are appended, where the fitted model has no stiffness
+//! or mass. Their whole rows are then the change, and the basis is `V = [Φ, C, E_N]` with
+//! `E_N` the unit vectors of the new DOFs; the correction `C` covers the fitted model's
+//! DOFs that the change couples to them. A new DOF must be coupled to those DOFs (a
+//! splice's hinge is), or `K′` would be singular.
 
 mod changes;
 

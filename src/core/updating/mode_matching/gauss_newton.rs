@@ -196,7 +196,17 @@ fn scaled_pseudo_inverse(a: &Mat<f64>) -> Option<Mat<f64>> {
     }))
 }
 
-/// The damped step `(A + μD) δ = −g` within the bounds: a component the solve would take
+/// The damped step `(A + μD) δ = −g`, by Cholesky; `None` when the matrix is not definite.
+pub(super) fn cholesky_step(damped: &Mat<f64>, g: &faer::Col<f64>) -> Option<faer::Col<f64>> {
+    let mut step = -g.clone();
+    damped
+        .llt(Side::Lower)
+        .ok()?
+        .solve_in_place(step.as_mat_mut());
+    Some(step)
+}
+
+/// The damped step `(A + μD) δ = −g` within the bounds ([`super::BoundStep::Hold`]): a component the solve would take
 /// across its bound is held on it and the others are solved again with it fixed, until no
 /// free component crosses (`u = ln θ` the current point). When none crosses, this is the
 /// plain solve. Cutting each crossing component afterwards instead
@@ -216,11 +226,7 @@ pub(super) fn step_within_bounds(
         let free: Vec<usize> = (0..p).filter(|&i| fixed[i].is_none()).collect();
         let mut step = faer::Col::from_fn(p, |i| fixed[i].unwrap_or(0.0));
         if free.len() == p {
-            step = -g.clone();
-            damped
-                .llt(Side::Lower)
-                .ok()?
-                .solve_in_place(step.as_mat_mut());
+            step = cholesky_step(damped, g)?;
         } else if !free.is_empty() {
             let sub = Mat::from_fn(free.len(), free.len(), |a, b| damped[(free[a], free[b])]);
             let mut rhs = faer::Col::from_fn(free.len(), |a| -g[free[a]]);
