@@ -377,7 +377,7 @@ impl Splice {
         let (sa, sb) = (size(&m.from), size(&m.to));
         let t = (sa + (len - sa - sb) * k as f64 / m.elements as f64) / len;
         Ok(NodeSpec {
-            name: format!("{}.splice{k}", m.name),
+            name: space::split_names(&m.name, k).1,
             x: x0 + t * (x1 - x0),
             y: y0 + t * (y1 - y0),
         })
@@ -446,7 +446,7 @@ impl FileEffect for Splice {
         let split_node = Self::split_node(spec, &m, k)?;
         let node = split_node.name.clone();
         spec.nodes.push(split_node);
-        let (a, b) = (format!("{}~a", m.name), format!("{}~b", m.name));
+        let (a, _, b) = space::split_names(&m.name, k);
         Self::hand_over(spec, &m, k, (&a, &node, &b));
         let mut part_a = m.clone();
         part_a.name = a.clone();
@@ -500,11 +500,7 @@ impl FileEffect for Splice {
             return label.to_string();
         }
         let mut at = at.to_string();
-        let (a, node, b) = (
-            format!("{member}~a"),
-            format!("{member}.splice{k}"),
-            format!("{member}~b"),
-        );
+        let (a, node, b) = space::split_names(member, k);
         space::relocate_split(&mut at, member, k, (&a, &node, &b));
         format!("{at}.{component}")
     }

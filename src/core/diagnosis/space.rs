@@ -298,7 +298,7 @@ pub fn splice(sf: &mut SpaceFrameSpec, location: &str, u: f64) -> Result<(), Dia
     }
     let m: Member3 = sf.members[mi].clone();
     let (node, reference) = add_splice_node(sf, &m, k)?;
-    let (a, b) = (format!("{}~a", m.name), format!("{}~b", m.name));
+    let (a, _, b) = split_names(&m.name, k);
     follow_split(sf, &m, k, (&a, &node, &b));
     let part = |name: &str, from: &str, to: &str, elements: usize| Member3 {
         name: name.to_string(),
@@ -341,7 +341,7 @@ fn add_splice_node(
         pb - e * sf.joint_size(&m.to),
     );
     let at: Vector3<f64> = p0 + (p1 - p0) * (k as f64 / m.elements as f64);
-    let node = format!("{}.splice{k}", m.name);
+    let (_, node, _) = split_names(&m.name, k);
     sf.nodes.push(Node3 {
         name: node.clone(),
         x: at.x,
@@ -425,6 +425,17 @@ pub fn axial_force_step(sf: &SpaceFrameSpec, location: &str) -> f64 {
     member_length_ei(sf, location).map_or(1.0, |(l, _, ei)| {
         0.02 * std::f64::consts::PI.powi(2) * ei / (l * l)
     })
+}
+
+/// The names a member split at its mesh node `k` gives: its first part, the node between
+/// the parts and its second part (`<member>~a`, `<member>.splice<k>`, `<member>~b`). Shared
+/// by the plane and space frames' splices.
+pub(super) fn split_names(member: &str, k: usize) -> (String, String, String) {
+    (
+        format!("{member}~a"),
+        format!("{member}.splice{k}"),
+        format!("{member}~b"),
+    )
 }
 
 /// A location `<member>.<j>` of a member split at mesh node `k` into parts `a` and `b`
