@@ -3,8 +3,8 @@
 use std::process::ExitCode;
 
 use boltwatch::commands::{
-    diagnose, export, identify, modes, normalisation, publish, replay, report, run, scenario,
-    simulate, sweep, update,
+    diagnose, export, identify, modes, normalisation, publish, replay, report, router, run,
+    scenario, simulate, sweep, update,
 };
 use clap::{Parser, Subcommand};
 
@@ -41,6 +41,9 @@ enum Command {
     /// The daemon: track the configured structures live over Zenoh (Zenoh and a rolling
     /// MCAP log out), until SIGINT or SIGTERM.
     Run(run::RunArgs),
+    /// A Zenoh router keeping the fleet's state in a replicated storage (Zenoh's storage
+    /// manager), until SIGINT or SIGTERM.
+    Router(router::RouterArgs),
     /// Publish a recording's modal sets over Zenoh (a field simulator for demos and tests).
     Publish(publish::PublishArgs),
     /// Write a model's K0, K_l and M (Matrix Market) and its DOFs and channels, for other tools.
@@ -67,6 +70,7 @@ fn main() -> ExitCode {
         Command::Replay(a) => replay::run(a),
         Command::Report(a) => report::run(a),
         Command::Run(a) => run::run(a),
+        Command::Router(a) => router::run(a),
         Command::Publish(a) => publish::run(a),
         Command::ExportMatrices(a) => export::run(a),
         Command::Identify(a) => identify::run(a),

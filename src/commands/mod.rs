@@ -13,6 +13,7 @@ pub mod progress;
 pub mod publish;
 pub mod replay;
 pub mod report;
+pub mod router;
 pub mod run;
 pub mod scenario;
 pub mod simulate;

@@ -21,6 +21,7 @@
 //! log file is finished, so nothing received is lost and a restart duplicates nothing.
 
 pub mod contact;
+pub mod fleet;
 pub mod log;
 pub mod metrics;
 pub mod worker;

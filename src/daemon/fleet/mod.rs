@@ -1,0 +1,2 @@
+//! The fleet (module docs to come).
+pub mod rendezvous;
