@@ -26,6 +26,34 @@ pub struct Settings {
     pub daemon: DaemonSettings,
     pub metrics: MetricsSettings,
     pub identify: IdentifySettings,
+    pub fleet: FleetSettings,
+}
+
+/// `[fleet]`: daemons sharing the structures of one configuration.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FleetSettings {
+    /// The group's name ("": no fleet, this daemon watches every configured structure).
+    pub group: String,
+    /// This daemon's id in the group (unique; "": the host name).
+    pub id: String,
+}
+
+impl FleetSettings {
+    /// Whether this daemon belongs to a fleet.
+    pub fn enabled(&self) -> bool {
+        !self.group.is_empty()
+    }
+}
+
+/// Where a structure's state (checkpoints, write-ahead tail) lives.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum StateStore {
+    /// `daemon.state_dir` on this box.
+    Local,
+    /// The storages of the fleet's routers (`boltwatch/<structure>/@state/**`).
+    Zenoh,
 }
 
 /// `[zenoh]`: the session of `boltwatch run`.
@@ -55,6 +83,7 @@ pub enum ZenohMode {
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DaemonSettings {
+    pub state: StateStore,
     pub state_dir: PathBuf,
     pub queue: usize,
     pub checkpoint_every_s: f64,
@@ -169,6 +198,9 @@ impl Settings {
             // empty, and `run` says so.
             s.daemon.state_dir = base.join("boltwatch");
         }
+        if s.fleet.enabled() && s.fleet.id.is_empty() {
+            s.fleet.id = host_name();
+        }
         s.validate().with_context(|| format!("bad {what}"))?;
         Ok(s)
     }
@@ -200,7 +232,10 @@ impl Settings {
             bail!("configuration key structures: watch at least one structure");
         }
         for (i, s) in self.structures.iter().enumerate() {
-            if s.name.is_empty() || s.name.contains(['/', '*', '$', '?', '#']) {
+            if s.name.is_empty()
+                || s.name.starts_with('@')
+                || s.name.contains(['/', '*', '$', '?', '#'])
+            {
                 bail!(
                     "configuration key structures[{i}].name: `{}` is not a usable key-expression chunk",
                     s.name
@@ -253,6 +288,27 @@ impl Settings {
         }
         if self.daemon.log_rotate_mib == 0 {
             bail!("configuration key daemon.log_rotate_mib: must be at least 1");
+        }
+        self.validate_fleet()
+    }
+
+    /// A fleet's group and id are key-expression chunks, and its state is in Zenoh (a
+    /// structure taken over must find its state on another box).
+    fn validate_fleet(&self) -> Result<()> {
+        let f = &self.fleet;
+        if !f.enabled() {
+            return Ok(());
+        }
+        for (key, v) in [("fleet.group", &f.group), ("fleet.id", &f.id)] {
+            if v.is_empty() || v.starts_with('@') || v.contains(['/', '*', '$', '?', '#']) {
+                bail!("configuration key {key}: `{v}` is not a usable key-expression chunk");
+            }
+        }
+        if self.daemon.state != StateStore::Zenoh {
+            bail!(
+                "configuration key daemon.state: a fleet (fleet.group = `{}`) keeps its state in Zenoh: set daemon.state = \"zenoh\"",
+                f.group
+            );
         }
         Ok(())
     }
@@ -462,4 +518,17 @@ mod tests {
         .unwrap();
         assert_eq!(s.daemon.state_dir, Path::new("/var/lib/bw"));
     }
+}
+
+/// This machine's host name ("" if it has none): a fleet daemon's default id.
+fn host_name() -> String {
+    let mut buf = [0u8; 256];
+    // SAFETY: the buffer is valid for its length; gethostname NUL-terminates within it
+    // when the name fits (a longer name is truncated and the last byte zeroed below).
+    let rc = unsafe { libc::gethostname(buf.as_mut_ptr().cast(), buf.len() - 1) };
+    if rc != 0 {
+        return String::new();
+    }
+    let end = buf.iter().position(|&b| b == 0).unwrap_or(buf.len() - 1);
+    String::from_utf8_lossy(&buf[..end]).into_owned()
 }

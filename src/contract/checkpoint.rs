@@ -18,6 +18,19 @@ pub struct Checkpoint<S> {
     /// when this state was taken, and a restart replays them (absent in replays).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub wal: Option<WalPosition>,
+    /// A fleet daemon's place in the write-ahead tail it keeps in Zenoh (absent otherwise).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fleet: Option<FleetPosition>,
+}
+
+/// Where a fleet daemon's checkpoint stands: written in ownership `epoch` by `owner`, with
+/// the write-ahead entries of that epoch from `next` on not yet handled (and those of later
+/// epochs, written after it, none handled).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FleetPosition {
+    pub epoch: u64,
+    pub owner: String,
+    pub next: u64,
 }
 
 /// A position in the daemon's rolling log: the `modal`-th modal set (from 0) of log file

@@ -30,10 +30,10 @@ use chrono::{DateTime, Utc};
 
 pub use alert::{Alert, AlertDetail, AlertKind, AlertLevel, Verdict};
 pub use checkpoint::WalPosition;
-pub use checkpoint::{Checkpoint, EigenBlock};
+pub use checkpoint::{Checkpoint, EigenBlock, FleetPosition};
 pub use crosscheck::Crosscheck;
 pub use rejected::{REJECTED_PAYLOAD_LIMIT, Rejected};
-pub use status::Status;
+pub use status::{Ownership, Status};
 pub use stiffness::{Estimate, ModeComparison, Termination};
 pub use wire::{Message, Schema, digest, finite, output_id, rfc3339, to_wire};
 

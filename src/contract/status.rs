@@ -37,6 +37,22 @@ pub struct Status {
     pub log_file: Option<String>,
     /// When the state was last checkpointed.
     pub last_checkpoint: Option<String>,
+    /// A fleet daemon's ownership of the structure (absent outside a fleet).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ownership: Option<Ownership>,
+}
+
+/// Which fleet member tracks the structure, since when, in which epoch.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Ownership {
+    pub group: String,
+    pub owner: String,
+    pub epoch: u64,
+    /// When this member took the structure over (RFC 3339).
+    pub since: String,
+    /// Outputs and state writes the fence held back (the epoch had moved on, or could
+    /// not be confirmed).
+    pub held: u64,
 }
 
 impl Message for Status {

@@ -84,6 +84,8 @@ pub struct Status {
     pub replayed: u64,
     pub failed: u64,
     pub wal: WalStatus,
+    /// A fleet member's ownership of the structure.
+    pub ownership: Option<contract::Ownership>,
 }
 
 impl Status {
@@ -227,6 +229,7 @@ impl Shared {
             log_file: st.log_file,
             last_checkpoint: st.last_checkpoint,
             wal: st.wal,
+            ownership: st.ownership,
         }
     }
 }
@@ -234,11 +237,15 @@ impl Shared {
 /// Every structure's metrics, read from the shared state at each scrape. Counter names
 /// leave out `_total`: the encoder appends it.
 #[derive(Debug)]
-struct Structures(Vec<Arc<Shared>>);
+struct Structures(Watched);
+
+/// The structures the daemon watches now (a fleet member's change as ownership moves).
+pub type Watched = Arc<std::sync::RwLock<Vec<Arc<Shared>>>>;
 
 impl Collector for Structures {
     fn encode(&self, mut enc: DescriptorEncoder) -> std::fmt::Result {
-        let all: Vec<(&Shared, Status)> = self.0.iter().map(|s| (&**s, s.status())).collect();
+        let now: Vec<Arc<Shared>> = self.0.read().map(|v| v.clone()).unwrap_or_default();
+        let all: Vec<(&Shared, Status)> = now.iter().map(|s| (&**s, s.status())).collect();
         encode_counters(&mut enc, &all)?;
         encode_queue_depth(&mut enc, &all)?;
         encode_latency(&mut enc, &all)?;
@@ -365,7 +372,7 @@ fn encode_theta(enc: &mut DescriptorEncoder, all: &[(&Shared, Status)]) -> std::
 }
 
 /// Serves `GET /metrics` (and `GET /`) on `listener` until the task is dropped.
-pub async fn serve(listener: tokio::net::TcpListener, all: Vec<Arc<Shared>>) {
+pub async fn serve(listener: tokio::net::TcpListener, all: Watched) {
     let mut registry = Registry::default();
     registry.register_collector(Box::new(Structures(all)));
     let scrape = |State(registry): State<Arc<Registry>>| async move {

@@ -14,6 +14,7 @@
 mod guard;
 mod ingest;
 mod queue;
+mod remote;
 mod sink;
 
 use std::collections::HashMap;
@@ -27,9 +28,11 @@ use chrono::{DateTime, Utc};
 
 pub use guard::panic_message;
 pub use queue::{QUEUE_WAIT, WhenFull, enqueue, enqueue_accel, enqueue_environment};
+pub use remote::Remote;
 pub use sink::LiveSink;
 
 use crate::contract::{Output, Rejected, WalPosition, rfc3339};
+use crate::daemon::fleet::state::WalEntry;
 use crate::io::checkpoint;
 use crate::io::driver::{CrosscheckLane, OffPath, StructureModel, emit};
 use crate::io::mcap::from_ns;
@@ -104,6 +107,17 @@ pub struct Worker {
     handled_upto: Option<WalPosition>,
     /// Raw data to modal sets ([`crate::pipeline::accel`]).
     front: AccelFront,
+    /// The state in the fleet's storages instead of `checkpoint_path` (`daemon.state =
+    /// "zenoh"`).
+    remote: Option<Remote>,
+}
+
+/// Where a starting worker finds the inputs it must handle again.
+pub enum Resume {
+    /// The local rolling log, after the checkpoint's position (`None`: a fresh state).
+    Log(Option<WalPosition>),
+    /// The write-ahead tail fetched from the storages.
+    Remote(Vec<WalEntry>),
 }
 
 impl Worker {
@@ -143,49 +157,72 @@ impl Worker {
             missed_reported: 0,
             handled_upto: None,
             front,
+            remote: None,
         };
         w.update_status()?;
         Ok(w)
+    }
+
+    /// Keeps the state in the fleet's storages through `remote` instead of the local file.
+    pub fn with_remote(mut self, remote: Remote) -> Self {
+        self.remote = Some(remote);
+        self
     }
 
     fn structure(&self) -> &str {
         &self.out.shared.structure
     }
 
-    /// Handles again the sets logged at and after `from` (the checkpoint's write-ahead
-    /// position; `None` for a fresh state), without logging them again, then checkpoints
-    /// so that a further restart starts after them. Their outputs are published again,
-    /// byte-identical and with the same ids as before the crash (the tracker is
-    /// deterministic and resumes bit for bit).
-    pub fn resume(&mut self, from: Option<WalPosition>) -> Result<()> {
-        if let Some(pos) = from {
-            let after = pos.clone();
-            let inputs = self.out.log(move |log| log.inputs_after(&after))?;
-            let n = inputs.len() as u64;
-            for m in inputs {
-                if m.topic.ends_with("/environment") {
-                    let actions = self
-                        .tracker
-                        .handle_environment(from_ns(m.log_time), &m.data);
-                    self.publish_guarded(from_ns(m.log_time), &m.data, actions)?;
-                } else {
-                    self.handle(from_ns(m.log_time), &m.data)?;
-                }
-                self.out.shared.beat();
+    /// Handles again the inputs a restart or a takeover must ([`Resume`]), then
+    /// checkpoints so that a further restart starts after them. Their outputs are published
+    /// again, byte-identical and with the same ids as before (the tracker is deterministic
+    /// and resumes bit for bit).
+    pub fn resume(&mut self, from: Resume) -> Result<()> {
+        match from {
+            Resume::Log(Some(pos)) => {
+                let after = pos.clone();
+                let inputs = self.out.log(move |log| log.inputs_after(&after))?;
+                let inputs = inputs
+                    .into_iter()
+                    .map(|m| (m.topic.ends_with("/environment"), m.log_time, m.data))
+                    .collect();
+                let what = format!("write-ahead log from {} #{}", pos.file, pos.modal);
+                self.handle_again(inputs, &what)?;
             }
-            self.out.shared.with_status(|st| st.replayed += n);
-            if n > 0 {
-                tracing::info!(
-                    structure = self.structure(),
-                    sets = n,
-                    "handled again the sets logged after the checkpoint (write-ahead log from {} #{})",
-                    pos.file,
-                    pos.modal
-                );
+            Resume::Log(None) => {}
+            Resume::Remote(entries) => {
+                let inputs = entries
+                    .into_iter()
+                    .map(|e| (e.suffix == "environment", e.time_ns, e.bytes))
+                    .collect();
+                self.handle_again(inputs, "the fleet's state storage")?;
             }
         }
         self.handled_upto = Some(self.out.log(|log| log.next_input())?);
         self.checkpoint()
+    }
+
+    /// Handles inputs (environment reading or not, log time, bytes) again, in order.
+    fn handle_again(&mut self, inputs: Vec<(bool, u64, Vec<u8>)>, what: &str) -> Result<()> {
+        let n = inputs.len() as u64;
+        for (environment, time, data) in inputs {
+            if environment {
+                let actions = self.tracker.handle_environment(from_ns(time), &data);
+                self.publish_guarded(from_ns(time), &data, actions)?;
+            } else {
+                self.handle(from_ns(time), &data)?;
+            }
+            self.out.shared.beat();
+        }
+        self.out.shared.with_status(|st| st.replayed += n);
+        if n > 0 {
+            tracing::info!(
+                structure = self.structure(),
+                sets = n,
+                "handled again the sets written after the checkpoint ({what})"
+            );
+        }
+        Ok(())
     }
 
     /// Runs until [`Input::Shutdown`] (or the queue closes), then waits for a running
@@ -276,8 +313,11 @@ impl Worker {
         self.out.log(|log| log.sync())?;
         let mut c = self.tracker.checkpoint();
         c.wal = self.handled_upto.clone();
-        checkpoint::write_atomic(&self.checkpoint_path, &c)
-            .with_context(|| format!("checkpoint of {}", self.structure()))?;
+        match self.remote.as_mut() {
+            Some(remote) => remote.put_checkpoint(c)?,
+            None => checkpoint::write_atomic(&self.checkpoint_path, &c)
+                .with_context(|| format!("checkpoint of {}", self.structure()))?,
+        }
         self.last_checkpoint = Instant::now();
         self.dirty = false;
         let now = rfc3339(Utc::now());

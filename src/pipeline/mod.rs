@@ -386,6 +386,7 @@ impl Tracker {
             state: self.state.clone(),
             eigen_block: self.mm.evaluator.warm_state().map(|b| EigenBlock::from(&b)),
             wal: None,
+            fleet: None,
         }
     }
 

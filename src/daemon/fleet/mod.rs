@@ -1,2 +1,251 @@
-//! The fleet (module docs to come).
+//! The fleet: daemons sharing the structures of one configuration (`[fleet] group`), with
+//! no coordinator but Zenoh.
+//!
+//! - **Membership.** Each daemon declares the liveliness token
+//!   `boltwatch/@fleet/<group>/<id>` and follows the group's tokens. A daemon that stops
+//!   (or is killed: its Zenoh session closes) loses its token at once; one that is paused
+//!   or cut off loses it when its Zenoh lease runs out.
+//! - **Ownership.** Each structure belongs to the live member that [`rendezvous`] hashing
+//!   names, which every member computes alike. A member takes a structure over only once
+//!   the previous owner (in the structure's owner record, [`state`]) is gone from the group
+//!   or has handed it back; a member that is no longer the structure's choice hands it back
+//!   (its lane drained and its state written first).
+//! - **Epochs and fencing.** Each takeover writes a new epoch into the owner record; a
+//!   lane's outputs carry its owner and epoch, and a lane whose epoch moved on is fenced
+//!   ([`fence`]) and closed without publishing or writing anything more.
+//! - **State** in the routers' replicated storages ([`state`]): a new owner resumes from
+//!   the latest checkpoint and the write-ahead entries after it, and the sensors'
+//!   publisher caches give it the sets published meanwhile.
+
+pub mod fence;
+mod ownership;
 pub mod rendezvous;
+pub mod state;
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::{Result, anyhow};
+use tokio::sync::oneshot;
+use tokio::task::JoinHandle;
+use zenoh::sample::SampleKind;
+
+use super::lane::Lane;
+use super::metrics::Watched;
+use super::{DoneTx, unwatch, watch};
+use crate::io::zenoh::zerr;
+use crate::settings::Settings;
+use state::OwnerRecord;
+
+/// How often ownership is looked at again without a membership change (a takeover that
+/// waited for a hand-back, a storage that did not answer).
+const RECONCILE_EVERY: Duration = Duration::from_millis(500);
+
+/// The key of a member's liveliness token.
+pub fn member_key(group: &str, id: &str) -> String {
+    format!("boltwatch/@fleet/{group}/{id}")
+}
+
+/// The running fleet membership of this daemon: its controller task.
+pub struct Fleet {
+    stop: oneshot::Sender<()>,
+    task: JoinHandle<Result<()>>,
+}
+
+impl Fleet {
+    /// Joins the group (the token; the members present now) and starts the controller,
+    /// which opens and closes this daemon's lanes as ownership moves.
+    pub async fn start(
+        settings: Arc<Settings>,
+        session: zenoh::Session,
+        watched: Watched,
+        done: DoneTx,
+    ) -> Result<Fleet> {
+        let f = &settings.fleet;
+        let members_ke = format!("boltwatch/@fleet/{}/*", f.group);
+        let members_sub = session
+            .liveliness()
+            .declare_subscriber(&members_ke)
+            .await
+            .map_err(zerr(format!(
+                "cannot follow the group's tokens {members_ke}"
+            )))?;
+        let owners_sub = session
+            .declare_subscriber("boltwatch/*/@state/owner")
+            .await
+            .map_err(zerr("cannot follow the owner records"))?;
+        let token = session
+            .liveliness()
+            .declare_token(member_key(&f.group, &f.id))
+            .await
+            .map_err(zerr("cannot declare this daemon's liveliness token"))?;
+        let mut c = Controller {
+            me: f.id.clone(),
+            members: BTreeSet::from([f.id.clone()]),
+            lanes: BTreeMap::new(),
+            settings: settings.clone(),
+            session,
+            watched,
+            done,
+        };
+        c.members
+            .extend(present_members(&c.session, &members_ke).await?);
+        tracing::info!(
+            group = f.group,
+            id = f.id,
+            members = ?c.members,
+            "joined the fleet"
+        );
+        let (stop, stopped) = oneshot::channel();
+        let task = tokio::spawn(async move {
+            let r = c.control(members_sub, owners_sub, stopped).await;
+            drop(token);
+            r
+        });
+        Ok(Fleet { stop, task })
+    }
+
+    /// Leaves: every lane handed back (drained, state written, record released), then the
+    /// token withdrawn.
+    pub async fn stop(self) -> Result<()> {
+        let _ = self.stop.send(());
+        self.task
+            .await
+            .map_err(|e| anyhow!("the fleet controller: {e}"))?
+    }
+}
+
+/// The members whose tokens are present now.
+async fn present_members(session: &zenoh::Session, ke: &str) -> Result<Vec<String>> {
+    let replies = session
+        .liveliness()
+        .get(ke)
+        .timeout(state::FETCH_TIMEOUT)
+        .await
+        .map_err(zerr("cannot list the group's members"))?;
+    let mut out = Vec::new();
+    while let Ok(reply) = replies.recv_async().await {
+        if let Ok(sample) = reply.result()
+            && let Some(id) = sample.key_expr().as_str().rsplit('/').next()
+        {
+            out.push(id.to_string());
+        }
+    }
+    Ok(out)
+}
+
+/// The controller's view: members, this daemon's lanes, and what opening a lane needs.
+struct Controller {
+    me: String,
+    members: BTreeSet<String>,
+    lanes: BTreeMap<String, Lane>,
+    settings: Arc<Settings>,
+    session: zenoh::Session,
+    watched: Watched,
+    done: DoneTx,
+}
+
+type Samples =
+    zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>;
+
+impl Controller {
+    /// Follows members and owner records until told to stop, reconciling ownership after
+    /// each change and every [`RECONCILE_EVERY`]; then hands every lane back.
+    async fn control(
+        &mut self,
+        members: Samples,
+        owners: Samples,
+        mut stop: oneshot::Receiver<()>,
+    ) -> Result<()> {
+        let mut tick = tokio::time::interval(RECONCILE_EVERY);
+        loop {
+            tokio::select! {
+                _ = &mut stop => break,
+                Ok(s) = members.recv_async() => self.member_changed(&s),
+                Ok(s) = owners.recv_async() => self.record_seen(&s).await,
+                _ = tick.tick() => {}
+            }
+            self.reconcile().await;
+        }
+        let names: Vec<String> = self.lanes.keys().cloned().collect();
+        for name in names {
+            self.hand_back(&name).await?;
+        }
+        Ok(())
+    }
+
+    fn member_changed(&mut self, s: &zenoh::sample::Sample) {
+        let Some(id) = s.key_expr().as_str().rsplit('/').next() else {
+            return;
+        };
+        if id == self.me {
+            return;
+        }
+        let joined = s.kind() == SampleKind::Put;
+        let changed = if joined {
+            self.members.insert(id.to_string())
+        } else {
+            self.members.remove(id)
+        };
+        if changed {
+            tracing::info!(
+                member = id,
+                joined,
+                members = ?self.members,
+                "fleet membership changed"
+            );
+        }
+    }
+
+    /// An owner record was put: a lane of this daemon that it supersedes is fenced and
+    /// closed without writing anything more.
+    async fn record_seen(&mut self, s: &zenoh::sample::Sample) {
+        let Ok(r) = serde_json::from_slice::<OwnerRecord>(&s.payload().to_bytes()) else {
+            tracing::warn!("an owner record on {} is not valid", s.key_expr());
+            return;
+        };
+        let superseded = self.lanes.get(&r.structure).is_some_and(|l| {
+            l.fence
+                .as_ref()
+                .is_some_and(|f| r.supersedes(f.epoch, &f.owner))
+        });
+        if superseded {
+            tracing::warn!(
+                structure = r.structure,
+                owner = r.owner,
+                epoch = r.epoch,
+                "another member took the structure over: standing down"
+            );
+            self.abandon(&r.structure).await;
+        }
+    }
+
+    /// Takes over what rendezvous hashing gives this daemon, hands back what it no longer
+    /// does, and closes lanes fenced on the way.
+    async fn reconcile(&mut self) {
+        let fenced: Vec<String> = self
+            .lanes
+            .iter()
+            .filter(|(_, l)| l.fence.as_ref().is_some_and(|f| f.is_fenced()))
+            .map(|(n, _)| n.clone())
+            .collect();
+        for name in fenced {
+            self.abandon(&name).await;
+        }
+        let settings = self.settings.clone();
+        for s in &settings.structures {
+            let mine = rendezvous::owner(self.members.iter().map(String::as_str), &s.name)
+                == Some(self.me.as_str());
+            let running = self.lanes.contains_key(&s.name);
+            let r = match (mine, running) {
+                (true, false) => self.take_over(s).await,
+                (false, true) => self.hand_back(&s.name).await,
+                _ => Ok(()),
+            };
+            if let Err(e) = r {
+                tracing::error!(structure = s.name, "{e:#}");
+            }
+        }
+    }
+}

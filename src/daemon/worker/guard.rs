@@ -98,6 +98,7 @@ impl Worker {
                 state,
                 eigen_block: None,
                 wal: None,
+                fleet: None,
             },
         )?;
         self.tracker.set_max_future(max_future);

@@ -13,6 +13,7 @@ use super::{Input, Worker, panic_message};
 use crate::contract::modal_set::Rejection;
 use crate::contract::rejected::REJECTED_PAYLOAD_LIMIT;
 use crate::contract::{Output, WalPosition, digest};
+use crate::daemon::fleet::state::WalEntry as RemoteEntry;
 use crate::daemon::metrics::Shared;
 use crate::io::driver::emit;
 use crate::io::mcap::to_ns;
@@ -81,6 +82,18 @@ impl Worker {
         if logged == 0 {
             return Ok(vec![None; entries.len()]);
         }
+        let remote_entries: Vec<RemoteEntry> = match self.remote {
+            Some(_) => entries
+                .iter()
+                .flatten()
+                .map(|(suffix, time_ns, bytes)| RemoteEntry {
+                    suffix,
+                    time_ns: *time_ns,
+                    bytes: bytes.clone(),
+                })
+                .collect(),
+            None => Vec::new(),
+        };
         let (positions, ms) = self.out.log(move |log| {
             let positions = entries
                 .into_iter()
@@ -93,6 +106,9 @@ impl Worker {
             log.sync()?;
             Ok((positions, t.elapsed().as_secs_f64() * 1e3))
         })?;
+        if let Some(remote) = self.remote.as_mut() {
+            remote.put_entries(&remote_entries)?;
+        }
         shared.with_status(|st| {
             st.wal.syncs += 1;
             st.wal.sets += logged;
@@ -181,6 +197,13 @@ impl Worker {
                     log.sync()?;
                     Ok(pos)
                 })?;
+                if let Some(remote) = self.remote.as_mut() {
+                    remote.put_entries(&[RemoteEntry {
+                        suffix: "modal",
+                        time_ns: time,
+                        bytes: bytes.clone(),
+                    }])?;
+                }
                 emit(&mut self.out, Output::Modal(set))?;
                 self.handle(received, &bytes)?;
                 self.handled_upto = Some(pos.after());

@@ -22,6 +22,7 @@ use zenoh::qos::CongestionControl;
 use zenoh::sample::Locality;
 
 use crate::contract::Output;
+use crate::daemon::fleet::fence::Fence;
 use crate::daemon::log::RollingLog;
 use crate::daemon::metrics::Shared;
 use crate::io::driver::{JobKind, Sink};
@@ -52,20 +53,33 @@ enum Job {
 pub struct LiveSink {
     pub shared: Arc<Shared>,
     writer: JobThread<Job, RollingLog>,
+    /// A fleet lane's fence: outputs carry its owner and epoch, and go out only while it
+    /// allows.
+    fence: Option<Arc<Fence>>,
 }
 
 impl LiveSink {
     /// Starts the writer thread on `log`, publishing on `session`.
-    pub fn start(session: zenoh::Session, log: RollingLog, shared: Arc<Shared>) -> Result<Self> {
+    pub fn start(
+        session: zenoh::Session,
+        log: RollingLog,
+        shared: Arc<Shared>,
+        fence: Option<Arc<Fence>>,
+    ) -> Result<Self> {
         let on_thread = shared.clone();
+        let thread_fence = fence.clone();
         let writer = JobThread::start(
             format!("write-{}", shared.structure),
             "the log writer",
             "writing the log",
             WRITER_QUEUE,
-            move |jobs| write_loop(jobs, log, &session, &on_thread),
+            move |jobs| write_loop(jobs, log, &session, &on_thread, thread_fence.as_deref()),
         )?;
-        Ok(Self { shared, writer })
+        Ok(Self {
+            shared,
+            writer,
+            fence,
+        })
     }
 
     /// Runs `f` on the log, on the writer thread after every output handed over before,
@@ -97,6 +111,7 @@ fn write_loop(
     mut log: RollingLog,
     session: &zenoh::Session,
     shared: &Shared,
+    fence: Option<&Fence>,
 ) -> Result<RollingLog> {
     for job in jobs {
         match job {
@@ -109,7 +124,15 @@ fn write_loop(
                 if !modal {
                     log.write(&key, time, &bytes)?;
                 }
-                publish(session, shared, &key, bytes, modal);
+                if fence.is_none_or(Fence::allows) {
+                    publish(session, shared, &key, bytes, modal);
+                } else {
+                    shared.with_status(|st| {
+                        if let Some(o) = st.ownership.as_mut() {
+                            o.held += 1;
+                        }
+                    });
+                }
             }
             Job::Call(f) => f(&mut log),
         }
@@ -159,6 +182,11 @@ impl Sink for LiveSink {
 impl LiveSink {
     /// The key and log time are found here, so an output they fail for fails with its set.
     fn hand_over(&mut self, output: &Output, bytes: Vec<u8>) -> Result<()> {
+        // A modal set identified here is an input to others, in its own contract: as is.
+        let bytes = match &self.fence {
+            Some(f) if !matches!(output, Output::Modal(_)) => stamp(bytes, &f.owner, f.epoch),
+            _ => bytes,
+        };
         let job = Job::Publish {
             key: topic(output.structure(), output.topic()),
             time: to_ns(output.time())?,
@@ -168,5 +196,38 @@ impl LiveSink {
         self.writer.send(job)?;
         self.shared.with_status(|st| st.note(output));
         Ok(())
+    }
+}
+
+/// An output's JSON object with the fleet's `"owner"` and `"epoch"` fields added at its end
+/// (the rest byte for byte as the tracker wrote it, so outputs of one set compare equal
+/// across owners once these two are taken out).
+pub fn stamp(mut bytes: Vec<u8>, owner: &str, epoch: u64) -> Vec<u8> {
+    if bytes.len() < 2 || bytes.last() != Some(&b'}') {
+        return bytes;
+    }
+    bytes.pop();
+    let sep = if bytes.last() == Some(&b'{') { "" } else { "," };
+    let owner = serde_json::to_string(owner).expect("a string serialises");
+    bytes.extend_from_slice(format!("{sep}\"owner\":{owner},\"epoch\":{epoch}}}").as_bytes());
+    bytes
+}
+
+#[cfg(test)]
+mod tests {
+    use super::stamp;
+
+    #[test]
+    fn stamping_adds_owner_and_epoch_and_keeps_the_rest() {
+        let out = stamp(br#"{"a":1,"b":[2]}"#.to_vec(), "box \"1\"", 7);
+        let v: serde_json::Value = serde_json::from_slice(&out).unwrap();
+        assert_eq!(v["owner"], "box \"1\"");
+        assert_eq!(v["epoch"], 7);
+        assert!(out.starts_with(br#"{"a":1,"b":[2],"owner":"#));
+        assert_eq!(
+            stamp(b"{}".to_vec(), "x", 1),
+            br#"{"owner":"x","epoch":1}"#.to_vec()
+        );
+        assert_eq!(stamp(b"[1]".to_vec(), "x", 1), b"[1]".to_vec());
     }
 }
