@@ -87,7 +87,7 @@ impl Fence {
                 }
             }
             match read_owner(&self.session, &self.structure) {
-                Ok(Some(r)) if r.supersedes(self.epoch, &self.owner) => {
+                Ok(r) if r.supersedes(self.epoch, &self.owner) => {
                     self.fence();
                     return false;
                 }
@@ -114,9 +114,10 @@ impl Fence {
     }
 }
 
-/// The structure's owner record as the storages hold it (`None`: none stored). No answer
-/// from any storage is an error: the record cannot be known.
-pub fn read_owner(session: &zenoh::Session, structure: &str) -> Result<Option<OwnerRecord>> {
+/// The structure's owner record as the storages hold it. A lane's record exists from its
+/// takeover on, so no answer at all (no storage reached, or a session still reconnecting
+/// with stale routes) is an error, never "no record": the epoch cannot be confirmed.
+pub fn read_owner(session: &zenoh::Session, structure: &str) -> Result<OwnerRecord> {
     let replies = session
         .get(owner_key(structure))
         .target(QueryTarget::All)
@@ -124,10 +125,8 @@ pub fn read_owner(session: &zenoh::Session, structure: &str) -> Result<Option<Ow
         .timeout(FETCH_TIMEOUT)
         .wait()
         .map_err(|e| anyhow!("cannot query the owner of {structure}: {e}"))?;
-    let mut answered = false;
     let mut record: Option<OwnerRecord> = None;
     while let Ok(reply) = replies.recv() {
-        answered = true;
         if let Ok(sample) = reply.result() {
             let r: OwnerRecord = serde_json::from_slice(&sample.payload().to_bytes())
                 .map_err(|e| anyhow!("the owner record of {structure} is not valid: {e}"))?;
@@ -139,18 +138,5 @@ pub fn read_owner(session: &zenoh::Session, structure: &str) -> Result<Option<Ow
             }
         }
     }
-    if !answered && !storage_present(session, structure) {
-        return Err(anyhow!("no state storage answers for {structure}"));
-    }
-    Ok(record)
-}
-
-/// Whether a queryable (a state storage) matches the structure's owner record: with none,
-/// a query's silence says nothing about the record.
-fn storage_present(session: &zenoh::Session, structure: &str) -> bool {
-    session
-        .declare_querier(owner_key(structure))
-        .wait()
-        .and_then(|q| q.matching_status().wait())
-        .is_ok_and(|m| m.matching())
+    record.ok_or_else(|| anyhow!("no state storage answered with the owner record of {structure}"))
 }

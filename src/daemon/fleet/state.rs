@@ -143,7 +143,7 @@ impl Fetched {
 
 /// Reads everything stored for `structure` from the storages (all of them answer; the
 /// latest value of each key is kept). A value that cannot be read fails the fetch with its
-/// key: a takeover must not resume from a partial state.
+/// key, and so does finding no storage: a takeover must not resume from a partial state.
 pub fn fetch(session: &zenoh::Session, structure: &str) -> Result<Fetched> {
     let prefix = format!("boltwatch/{structure}/@state/");
     let replies = session
@@ -154,7 +154,9 @@ pub fn fetch(session: &zenoh::Session, structure: &str) -> Result<Fetched> {
         .wait()
         .map_err(zerr(format!("cannot query the state of {structure}")))?;
     let mut f = Fetched::default();
+    let mut answered = false;
     while let Ok(reply) = replies.recv() {
+        answered = true;
         let sample = reply
             .result()
             .map_err(|e| anyhow!("the state storage of {structure} answered an error: {e:?}"))?;
@@ -163,7 +165,21 @@ pub fn fetch(session: &zenoh::Session, structure: &str) -> Result<Fetched> {
         let bytes = sample.payload().to_bytes();
         read_value(&mut f, rest, &bytes).with_context(|| format!("stored state {key}"))?;
     }
+    // Nothing stored is a structure never tracked, but only if a storage is there to say
+    // so: a session cut off from the routers must not take over from an empty state.
+    if !answered && !storage_present(session, structure) {
+        bail!("no state storage is reachable for {structure}");
+    }
     Ok(f)
+}
+
+/// Whether a queryable (a state storage) matches the structure's state now.
+pub fn storage_present(session: &zenoh::Session, structure: &str) -> bool {
+    session
+        .declare_querier(owner_key(structure))
+        .wait()
+        .and_then(|q| q.matching_status().wait())
+        .is_ok_and(|m| m.matching())
 }
 
 /// Files one stored value by its key below `@state/`.

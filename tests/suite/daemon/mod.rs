@@ -367,6 +367,7 @@ pub fn replayed_with(
 
 mod deploy;
 mod field;
+mod fleet;
 mod tracking;
 
 /// Peak resident set size of a running process (KiB).
