@@ -393,6 +393,19 @@ fn relative_to_file(f: &Path) -> Result<String> {
     Ok(toml::to_string(&doc)?)
 }
 
+/// This machine's host name ("" if it has none): a fleet daemon's default id.
+fn host_name() -> String {
+    let mut buf = [0u8; 256];
+    // SAFETY: the buffer is valid for its length; gethostname NUL-terminates within it
+    // when the name fits (a longer name is truncated and the last byte zeroed below).
+    let rc = unsafe { libc::gethostname(buf.as_mut_ptr().cast(), buf.len() - 1) };
+    if rc != 0 {
+        return String::new();
+    }
+    let end = buf.iter().position(|&b| b == 0).unwrap_or(buf.len() - 1);
+    String::from_utf8_lossy(&buf[..end]).into_owned()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -518,17 +531,4 @@ mod tests {
         .unwrap();
         assert_eq!(s.daemon.state_dir, Path::new("/var/lib/bw"));
     }
-}
-
-/// This machine's host name ("" if it has none): a fleet daemon's default id.
-fn host_name() -> String {
-    let mut buf = [0u8; 256];
-    // SAFETY: the buffer is valid for its length; gethostname NUL-terminates within it
-    // when the name fits (a longer name is truncated and the last byte zeroed below).
-    let rc = unsafe { libc::gethostname(buf.as_mut_ptr().cast(), buf.len() - 1) };
-    if rc != 0 {
-        return String::new();
-    }
-    let end = buf.iter().position(|&b| b == 0).unwrap_or(buf.len() - 1);
-    String::from_utf8_lossy(&buf[..end]).into_owned()
 }

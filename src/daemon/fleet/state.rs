@@ -209,7 +209,11 @@ mod tests {
 
     fn entry(t: u64) -> WalEntry {
         WalEntry {
-            suffix: if t % 2 == 0 { "modal" } else { "environment" },
+            suffix: if t.is_multiple_of(2) {
+                "modal"
+            } else {
+                "environment"
+            },
             time_ns: t,
             bytes: format!("set {t}").into_bytes(),
         }

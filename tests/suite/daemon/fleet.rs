@@ -378,7 +378,7 @@ fn a_fleet_loses_no_set_when_a_daemon_or_a_router_dies() {
     let site = Site::new("fleet", 12, 60, 2);
     let want = site.reference(&site.structures);
     assert_eq!(want.count("stiffness"), 12 * 60);
-    let mut routers = vec![site.router(0), site.router(1)];
+    let mut routers = [site.router(0), site.router(1)];
     std::thread::sleep(Duration::from_millis(500));
     let mut daemons: BTreeMap<String, Proc> = ["d1", "d2", "d3"]
         .iter()
