@@ -3,7 +3,7 @@
 use std::process::ExitCode;
 
 use boltwatch::commands::{
-    diagnose, export, identify, modes, normalisation, publish, replay, report, router, run,
+    diagnose, export, fleet, identify, modes, normalisation, publish, replay, report, router, run,
     scenario, simulate, sweep, update,
 };
 use clap::{Parser, Subcommand};
@@ -44,6 +44,9 @@ enum Command {
     /// A Zenoh router keeping the fleet's state in a replicated storage (Zenoh's storage
     /// manager), until SIGINT or SIGTERM.
     Router(router::RouterArgs),
+    /// The fleet as the network sees it: members, each structure's owner, epoch and lag.
+    #[command(subcommand)]
+    Fleet(fleet::FleetCommand),
     /// Publish a recording's modal sets over Zenoh (a field simulator for demos and tests).
     Publish(publish::PublishArgs),
     /// Write a model's K0, K_l and M (Matrix Market) and its DOFs and channels, for other tools.
@@ -71,6 +74,7 @@ fn main() -> ExitCode {
         Command::Report(a) => report::run(a),
         Command::Run(a) => run::run(a),
         Command::Router(a) => router::run(a),
+        Command::Fleet(a) => fleet::run(a),
         Command::Publish(a) => publish::run(a),
         Command::ExportMatrices(a) => export::run(a),
         Command::Identify(a) => identify::run(a),

@@ -4,6 +4,7 @@ pub mod bayes;
 mod bayes_output;
 pub mod diagnose;
 pub mod export;
+pub mod fleet;
 pub mod identify;
 pub mod identify_plot;
 pub mod inputs;

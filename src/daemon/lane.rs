@@ -414,18 +414,21 @@ async fn subscribe_environment(
         )))
 }
 
-/// The queryable that answers `boltwatch/<structure>/status` from the shared status.
+/// The queryable that answers `boltwatch/<structure>/status` (and wildcard queries
+/// matching it) from the shared status.
 async fn declare_status(
     session: &zenoh::Session,
     structure: &str,
     shared: &Arc<Shared>,
 ) -> Result<Queryable<()>> {
     let q_shared = shared.clone();
+    let key = topic(structure, "status");
     session
-        .declare_queryable(topic(structure, "status"))
+        .declare_queryable(key.clone())
         .callback(move |query| {
             let body = to_wire(&q_shared.status_reply());
-            if let Err(e) = query.reply(query.key_expr().clone(), body).wait() {
+            // On its own key, so a query on `boltwatch/*/status` has every structure answer.
+            if let Err(e) = query.reply(&key, body).wait() {
                 tracing::warn!("cannot answer a status query: {e}");
             }
         })

@@ -68,6 +68,15 @@ impl Fence {
         s.1 = true;
     }
 
+    /// Makes the next [`Fence::allows`] read the owner record again (the membership
+    /// changed: this daemon may have been cut off, and records put meanwhile missed).
+    pub fn expire(&self) {
+        let mut s = self.lock();
+        if let Some(t) = Instant::now().checked_sub(CONFIRM_WINDOW) {
+            s.0 = s.0.min(t);
+        }
+    }
+
     /// The lane is closing: [`Fence::allows`] no longer waits for the storages.
     pub fn closing(&self) {
         self.closing.store(true, Ordering::Relaxed);

@@ -189,6 +189,11 @@ impl Controller {
             self.members.remove(id)
         };
         if changed {
+            // Any change may be this daemon's own link going or coming back: every lane
+            // confirms its epoch again before its next output.
+            for f in self.lanes.values().filter_map(|l| l.fence.as_ref()) {
+                f.expire();
+            }
             tracing::info!(
                 member = id,
                 joined,

@@ -5,7 +5,9 @@ use anyhow::{Context, Result, anyhow};
 use chrono::Utc;
 use zenoh::qos::CongestionControl;
 
-use super::fence::Fence;
+use std::sync::Arc;
+
+use super::fence::{Fence, read_owner};
 use super::state::{self, OwnerRecord, owner_key};
 use super::{Controller, unwatch, watch};
 use crate::contract::{Ownership, rfc3339, to_wire};
@@ -35,7 +37,7 @@ impl Controller {
             );
             return Ok(());
         }
-        let epoch = fetched.owner.as_ref().map_or(1, |r| r.epoch + 1);
+        let epoch = 1 + fetched.latest_epoch();
         let record = OwnerRecord {
             structure: s.name.clone(),
             epoch,
@@ -75,6 +77,7 @@ impl Controller {
         lane.close().await?;
         if let Some(f) = fence
             && !f.is_fenced()
+            && still_current(&self.session, &f).await
         {
             let record = OwnerRecord {
                 structure: name.to_string(),
@@ -105,6 +108,24 @@ impl Controller {
         }
         if let Err(e) = lane.close().await {
             tracing::error!(structure = name, "closing the fenced lane: {e:#}");
+        }
+    }
+}
+
+/// Whether the owner record is still the lane's own (read from the storages): a member that
+/// was cut off must not release, over a newer owner's record, an epoch that moved on.
+async fn still_current(session: &zenoh::Session, f: &Arc<Fence>) -> bool {
+    let (session, structure) = (session.clone(), f.structure.clone());
+    let read = tokio::task::spawn_blocking(move || read_owner(&session, &structure)).await;
+    match read {
+        Ok(Ok(r)) => !r.supersedes(f.epoch, &f.owner),
+        Ok(Err(e)) => {
+            tracing::warn!(structure = f.structure, "not releasing: {e:#}");
+            false
+        }
+        Err(e) => {
+            tracing::warn!(structure = f.structure, "not releasing: {e}");
+            false
         }
     }
 }

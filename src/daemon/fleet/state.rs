@@ -129,6 +129,15 @@ impl Fetched {
         (Some(c), tail)
     }
 
+    /// The highest epoch anything stored was written in (0: nothing stored): a takeover
+    /// takes the next, even if the record itself was lost or overwritten.
+    pub fn latest_epoch(&self) -> u64 {
+        let record = self.owner.as_ref().map_or(0, |r| r.epoch);
+        let checkpoint = self.checkpoints.keys().next_back().copied().unwrap_or(0);
+        let wal = self.wal.keys().next_back().map_or(0, |k| k.0);
+        record.max(checkpoint).max(wal)
+    }
+
     /// The keys a checkpoint of a later epoch makes obsolete: every checkpoint and
     /// write-ahead entry fetched.
     pub fn obsolete_keys(&self, structure: &str) -> Vec<String> {

@@ -440,6 +440,30 @@ fn a_fleet_loses_no_set_when_a_daemon_or_a_router_dies() {
     std::thread::sleep(Duration::from_secs(1));
     heard.drain();
     assert_as_replayed(&heard.outputs(), &want);
+    // `fleet status` settles on every structure tracked by a live member, none queued.
+    let settled = |view: &Value| {
+        let lines = view["structures"].as_array().cloned().unwrap_or_default();
+        view["members"] == serde_json::json!(["d1", "d2", "d3"])
+            && lines.len() == 12
+            && lines
+                .iter()
+                .all(|l| l["owner_live"] == true && l["released"] == false && l["queued"] == 0)
+    };
+    let deadline = Instant::now() + Duration::from_secs(20);
+    loop {
+        let out = bin()
+            .args(["fleet", "status", "--group", "g", "--json", "--connect"])
+            .arg(&site.routers[1])
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{out:?}");
+        let view: Value = serde_json::from_slice(&out.stdout).unwrap();
+        if settled(&view) {
+            break;
+        }
+        assert!(Instant::now() < deadline, "fleet status: {view:#}");
+        std::thread::sleep(Duration::from_millis(500));
+    }
     for (id, d) in &daemons {
         assert!(!d.log().contains("panicked"), "{id}:\n{}", d.log());
     }
