@@ -249,7 +249,8 @@ impl Collector for Structures {
         encode_counters(&mut enc, &all)?;
         encode_queue_depth(&mut enc, &all)?;
         encode_latency(&mut enc, &all)?;
-        encode_theta(&mut enc, &all)
+        encode_theta(&mut enc, &all)?;
+        encode_ownership(&mut enc, &all)
     }
 }
 
@@ -367,6 +368,50 @@ fn encode_theta(enc: &mut DescriptorEncoder, all: &[(&Shared, Status)]) -> std::
             let labels = [("structure", s.structure.as_str()), ("parameter", &p.name)];
             ConstGauge::new(p.theta).encode(family.encode_family(&labels)?)?;
         }
+    }
+    Ok(())
+}
+
+/// A fleet member's structures: the ownership epoch (labelled with the owner), when this
+/// member took the structure over (Unix time), and the outputs its fence held back.
+fn encode_ownership(enc: &mut DescriptorEncoder, all: &[(&Shared, Status)]) -> std::fmt::Result {
+    let owned: Vec<(&Shared, &contract::Ownership)> = all
+        .iter()
+        .filter_map(|(s, st)| Some((*s, st.ownership.as_ref()?)))
+        .collect();
+    if owned.is_empty() {
+        return Ok(());
+    }
+    let mut family = enc.encode_descriptor(
+        "boltwatch_ownership_epoch",
+        "Ownership epoch of each structure this fleet member tracks.",
+        None,
+        MetricType::Gauge,
+    )?;
+    for (s, o) in &owned {
+        let labels = [("structure", s.structure.as_str()), ("owner", &o.owner)];
+        ConstGauge::new(o.epoch as i64).encode(family.encode_family(&labels)?)?;
+    }
+    let mut family = enc.encode_descriptor(
+        "boltwatch_ownership_since_seconds",
+        "When this member took the structure over (Unix time).",
+        None,
+        MetricType::Gauge,
+    )?;
+    for (s, o) in &owned {
+        let t = chrono::DateTime::parse_from_rfc3339(&o.since).map_or(0, |t| t.timestamp());
+        let labels = [("structure", s.structure.as_str())];
+        ConstGauge::new(t).encode(family.encode_family(&labels)?)?;
+    }
+    let mut family = enc.encode_descriptor(
+        "boltwatch_fence_held",
+        "Outputs the fence held back (the epoch moved on, or could not be confirmed).",
+        None,
+        MetricType::Counter,
+    )?;
+    for (s, o) in &owned {
+        let labels = [("structure", s.structure.as_str())];
+        ConstCounter::new(o.held).encode(family.encode_family(&labels)?)?;
     }
     Ok(())
 }

@@ -118,10 +118,15 @@ impl Site {
 
     /// Daemon `id` of group `g`, a client of the routers (the first that answers).
     fn daemon(&self, id: &str) -> Proc {
+        self.daemon_with_metrics(id, "")
+    }
+
+    /// [`Site::daemon`] with its metrics on `metrics` (`host:port`, "": none).
+    fn daemon_with_metrics(&self, id: &str, metrics: &str) -> Proc {
         let mut toml = format!(
             "{NO_CROSSCHECK}[zenoh]\nmode = \"client\"\nlisten = []\nconnect = {:?}\n\
              [daemon]\nstate = \"zenoh\"\nstate_dir = \"{}\"\n[fleet]\ngroup = \"g\"\nid = \"{id}\"\n\
-             [metrics]\nlisten = \"\"\n",
+             [metrics]\nlisten = \"{metrics}\"\n",
             self.routers,
             self.dir.join(format!("state-{id}")).display()
         );
@@ -479,7 +484,8 @@ fn a_paused_daemon_is_fenced_when_it_resumes() {
     let _router = site.router(0);
     std::thread::sleep(Duration::from_millis(500));
     let d1 = site.daemon("p1");
-    let _d2 = site.daemon("p2");
+    let metrics = format!("127.0.0.1:{}", free_port());
+    let _d2 = site.daemon_with_metrics("p2", &metrics);
     let z = client(&site.routers[0]);
     let mut heard = Listener::new(&z);
     let owners = site.wait_owners(&z, Duration::from_secs(60), "4 owners", |_, d| {
@@ -504,6 +510,13 @@ fn a_paused_daemon_is_fenced_when_it_resumes() {
     let during = status_of(&z, &s).expect("the structure answers while p1 is paused");
     assert_eq!(during["ownership"]["owner"], "p2", "{during:#}");
     heard.drain();
+    // p2's metrics name the structure it took over, with the new epoch.
+    let m = super::tracking::http_get(&metrics, "/metrics");
+    let line = format!(
+        "boltwatch_ownership_epoch{{structure=\"{s}\",owner=\"p2\"}} {}",
+        during["ownership"]["epoch"]
+    );
+    assert!(m.contains(&line), "{line} not in:\n{m}");
     let resumed = Instant::now();
     d1.signal(libc::SIGCONT);
     assert!(sensor.0.wait().unwrap().success(), "{}", sensor.log());

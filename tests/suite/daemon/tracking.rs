@@ -156,7 +156,7 @@ fn environment_readings_over_zenoh_are_joined_as_replay_joins_them() {
 }
 
 /// A minimal HTTP GET on loopback.
-fn http_get(addr: &str, path: &str) -> String {
+pub fn http_get(addr: &str, path: &str) -> String {
     use std::io::{Read, Write};
     let mut c = std::net::TcpStream::connect(addr).unwrap();
     write!(c, "GET {path} HTTP/1.1\r\nHost: {addr}\r\n\r\n").unwrap();
