@@ -375,6 +375,70 @@ fn assert_as_replayed(got: &Outputs, want: &Outputs) {
     }
 }
 
+/// Waits until `boltwatch fleet status` shows `members` and every structure tracked by a
+/// live member, handed back by none, with nothing queued.
+fn wait_fleet_settled(site: &Site, members: &[&str]) {
+    let settled = |view: &Value| {
+        let lines = view["structures"].as_array().cloned().unwrap_or_default();
+        view["members"] == serde_json::json!(members)
+            && lines.len() == site.structures.len()
+            && lines
+                .iter()
+                .all(|l| l["owner_live"] == true && l["released"] == false && l["queued"] == 0)
+    };
+    let deadline = Instant::now() + Duration::from_secs(20);
+    loop {
+        let out = bin()
+            .args(["fleet", "status", "--group", "g", "--json", "--connect"])
+            .arg(site.routers.last().unwrap())
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{out:?}");
+        let view: Value = serde_json::from_slice(&out.stdout).unwrap();
+        if settled(&view) {
+            return;
+        }
+        assert!(Instant::now() < deadline, "fleet status: {view:#}");
+        std::thread::sleep(Duration::from_millis(500));
+    }
+}
+
+/// Batch 1 of [`a_fleet_loses_no_set_when_a_daemon_or_a_router_dies`]: sets 0..20 of every
+/// structure, the busiest daemon killed -9 a second in; every structure it owned has a new
+/// owner in a new epoch within 10 s. Its id and structures.
+fn batch_with_a_kill(
+    site: &Site,
+    z: &zenoh::Session,
+    daemons: &mut BTreeMap<String, Proc>,
+) -> (String, Vec<String>) {
+    let owners = site.wait_owners(z, Duration::from_secs(60), "12 owners", |_, d| {
+        daemons.contains_key(d)
+    });
+    let victim = busiest(&owners);
+    let theirs: Vec<String> = owners
+        .iter()
+        .filter(|(_, (d, _))| *d == victim)
+        .map(|(s, _)| s.clone())
+        .collect();
+    assert!(theirs.len() >= 4, "{owners:?}");
+    let mut takeover = Duration::ZERO;
+    publish_all(site, 0, 0, 20, || {
+        std::thread::sleep(Duration::from_secs(1));
+        let killed = Instant::now();
+        daemons.get_mut(&victim).unwrap().kill9();
+        let after = site.wait_owners(z, Duration::from_secs(10), "the takeover", |_, d| {
+            d != victim
+        });
+        takeover = killed.elapsed();
+        for s in &theirs {
+            assert!(after[s].1 > owners[s].1, "{s}: no new epoch: {after:?}");
+        }
+    });
+    eprintln!("takeover of {} structures: {takeover:?}", theirs.len());
+    assert!(takeover < Duration::from_secs(10));
+    (victim, theirs)
+}
+
 /// Two routers, three daemons, twelve structures of 60 sets published in three batches of
 /// 20: the busiest daemon killed -9 during the first, back for the second, the sensors'
 /// router killed before the third.
@@ -392,33 +456,7 @@ fn a_fleet_loses_no_set_when_a_daemon_or_a_router_dies() {
     let z = client(&site.routers[1]);
     let mut heard = Listener::new(&z);
     let members = ["d1", "d2", "d3"];
-    let owners = site.wait_owners(&z, Duration::from_secs(60), "12 owners", |_, d| {
-        members.contains(&d)
-    });
-    let victim = busiest(&owners);
-    let theirs: Vec<String> = owners
-        .iter()
-        .filter(|(_, (d, _))| *d == victim)
-        .map(|(s, _)| s.clone())
-        .collect();
-    assert!(theirs.len() >= 4, "{owners:?}");
-
-    // Batch 1: the busiest daemon killed -9 a second in.
-    let mut takeover = Duration::ZERO;
-    publish_all(&site, 0, 0, 20, || {
-        std::thread::sleep(Duration::from_secs(1));
-        let killed = Instant::now();
-        daemons.get_mut(&victim).unwrap().kill9();
-        let after = site.wait_owners(&z, Duration::from_secs(10), "the takeover", |_, d| {
-            d != victim
-        });
-        takeover = killed.elapsed();
-        for s in &theirs {
-            assert!(after[s].1 > owners[s].1, "{s}: no new epoch: {after:?}");
-        }
-    });
-    eprintln!("takeover of {} structures: {takeover:?}", theirs.len());
-    assert!(takeover < Duration::from_secs(10));
+    let (victim, theirs) = batch_with_a_kill(&site, &z, &mut daemons);
     heard.wait_estimates(12 * 20, Duration::from_secs(60), "batch 1");
 
     // Batch 2: the daemon back; its structures return to it first.
@@ -445,33 +483,59 @@ fn a_fleet_loses_no_set_when_a_daemon_or_a_router_dies() {
     std::thread::sleep(Duration::from_secs(1));
     heard.drain();
     assert_as_replayed(&heard.outputs(), &want);
-    // `fleet status` settles on every structure tracked by a live member, none queued.
-    let settled = |view: &Value| {
-        let lines = view["structures"].as_array().cloned().unwrap_or_default();
-        view["members"] == serde_json::json!(["d1", "d2", "d3"])
-            && lines.len() == 12
-            && lines
-                .iter()
-                .all(|l| l["owner_live"] == true && l["released"] == false && l["queued"] == 0)
-    };
-    let deadline = Instant::now() + Duration::from_secs(20);
-    loop {
-        let out = bin()
-            .args(["fleet", "status", "--group", "g", "--json", "--connect"])
-            .arg(&site.routers[1])
-            .output()
-            .unwrap();
-        assert!(out.status.success(), "{out:?}");
-        let view: Value = serde_json::from_slice(&out.stdout).unwrap();
-        if settled(&view) {
-            break;
-        }
-        assert!(Instant::now() < deadline, "fleet status: {view:#}");
-        std::thread::sleep(Duration::from_millis(500));
-    }
+    wait_fleet_settled(&site, &["d1", "d2", "d3"]);
     for (id, d) in &daemons {
         assert!(!d.log().contains("panicked"), "{id}:\n{}", d.log());
     }
+}
+
+/// Nothing of `s` under p1's old `epoch` was heard after `resumed`, and p1's own log has
+/// estimates under it that were never published: the fence held them.
+fn assert_fenced(site: &Site, heard: &Listener, s: &str, epoch: u64, resumed: Instant) {
+    let stale: Vec<String> = heard
+        .got
+        .iter()
+        .filter(|(t, _, _)| *t > resumed)
+        .filter_map(|(_, k, b)| {
+            let v: Value = serde_json::from_slice(b).ok()?;
+            (v["owner"] == "p1" && v["epoch"].as_u64() == Some(epoch)).then(|| k.clone())
+        })
+        .collect();
+    assert!(
+        stale.is_empty(),
+        "published under the stale epoch after SIGCONT: {stale:?}"
+    );
+    // The fence had something to hold: sets that reached p1 before its link was dropped,
+    // tracked after SIGCONT and written into its own log, but not published.
+    let stale_id = |b: &[u8]| {
+        let v: Value = serde_json::from_slice(b).ok()?;
+        (v["owner"] == "p1" && v["epoch"].as_u64() == Some(epoch))
+            .then(|| v["id"].as_str().unwrap().to_string())
+    };
+    let published: BTreeSet<String> = heard
+        .got
+        .iter()
+        .filter(|(_, k, _)| k.ends_with(&format!("{s}/stiffness")))
+        .filter_map(|(_, _, b)| stale_id(b))
+        .collect();
+    let logged: BTreeSet<String> = std::fs::read_dir(site.dir.join("state-p1/log"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.to_string_lossy().contains(s) && p.extension().is_some_and(|x| x == "mcap"))
+        .flat_map(|p| read_all(&p).unwrap())
+        .filter(|m| m.topic.ends_with("/stiffness"))
+        .filter_map(|m| stale_id(&m.data))
+        .collect();
+    let held = logged.difference(&published).count();
+    eprintln!(
+        "p1 under epoch {epoch}: {} estimates logged, {} published, {held} held by the fence",
+        logged.len(),
+        published.len()
+    );
+    assert!(
+        held > 0,
+        "nothing reached p1 during its pause: the fence was not tested"
+    );
 }
 
 /// A daemon paused (SIGSTOP) for 30 s loses its structures to the others when its Zenoh
@@ -523,50 +587,8 @@ fn a_paused_daemon_is_fenced_when_it_resumes() {
     heard.wait_estimates(SETS, Duration::from_secs(60), "the paused structure's sets");
     std::thread::sleep(Duration::from_secs(3));
     heard.drain();
-    let stale: Vec<String> = heard
-        .got
-        .iter()
-        .filter(|(t, _, _)| *t > resumed)
-        .filter_map(|(_, k, b)| {
-            let v: Value = serde_json::from_slice(b).ok()?;
-            (v["owner"] == "p1" && v["epoch"].as_u64() == Some(epoch)).then(|| k.clone())
-        })
-        .collect();
-    assert!(
-        stale.is_empty(),
-        "published under the stale epoch after SIGCONT: {stale:?}"
-    );
-    // The fence had something to hold: sets that reached p1 before its link was dropped,
-    // tracked after SIGCONT and written into its own log, but not published.
-    let stale_id = |b: &[u8]| {
-        let v: Value = serde_json::from_slice(b).ok()?;
-        (v["owner"] == "p1" && v["epoch"].as_u64() == Some(epoch))
-            .then(|| v["id"].as_str().unwrap().to_string())
-    };
-    let published: BTreeSet<String> = heard
-        .got
-        .iter()
-        .filter(|(_, k, _)| k.ends_with(&format!("{s}/stiffness")))
-        .filter_map(|(_, _, b)| stale_id(b))
-        .collect();
-    let logged: BTreeSet<String> = std::fs::read_dir(site.dir.join("state-p1/log"))
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.to_string_lossy().contains(&s) && p.extension().is_some_and(|x| x == "mcap"))
-        .flat_map(|p| read_all(&p).unwrap())
-        .filter(|m| m.topic.ends_with("/stiffness"))
-        .filter_map(|m| stale_id(&m.data))
-        .collect();
-    let held = logged.difference(&published).count();
-    eprintln!(
-        "p1 under epoch {epoch}: {} estimates logged, {} published, {held} held by the fence",
-        logged.len(),
-        published.len()
-    );
-    assert!(
-        held > 0,
-        "nothing reached p1 during its pause: the fence was not tested"
-    );
+    assert_fenced(&site, &heard, &s, epoch, resumed);
+    assert_as_replayed(&heard.outputs(), &site.reference(std::slice::from_ref(&s)));
     assert!(
         d1.log().contains("ownership moved on") || d1.log().contains("standing down"),
         "{}",
