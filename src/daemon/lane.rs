@@ -113,9 +113,11 @@ impl Lane {
         Ok(())
     }
 
-    /// Tells the tracking thread to finish once the queue is handled.
-    pub fn signal_shutdown(&self) {
-        let _ = self.tx.send(Input::Shutdown);
+    /// Tells the tracking thread to finish once the queue is handled (waiting, off the
+    /// async runtime, while the queue is full).
+    pub async fn signal_shutdown(&self) {
+        let tx = self.tx.clone();
+        let _ = tokio::task::spawn_blocking(move || tx.send(Input::Shutdown)).await;
     }
 
     /// Waits for the tracking thread (it checkpoints and closes its log) and withdraws the
@@ -133,7 +135,7 @@ impl Lane {
     /// Closes the lane: intake stopped, queue handled, state written, log closed.
     pub async fn close(mut self) -> Result<()> {
         self.stop_intake().await?;
-        self.signal_shutdown();
+        self.signal_shutdown().await;
         self.join().await
     }
 }

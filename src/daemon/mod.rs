@@ -93,12 +93,17 @@ pub async fn close_all(mut lanes: Vec<Lane>) -> Result<()> {
         lane.stop_intake().await?;
     }
     for lane in &lanes {
-        lane.signal_shutdown();
+        lane.signal_shutdown().await;
     }
+    // Every lane joined, whatever an earlier one returned; the first failure reported.
+    let mut first = Ok(());
     for lane in lanes {
-        lane.join().await?;
+        let r = lane.join().await;
+        if first.is_ok() {
+            first = r;
+        }
     }
-    Ok(())
+    first
 }
 
 /// Creates the state directory (`daemon.state_dir`) and opens the Zenoh session.

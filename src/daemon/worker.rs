@@ -110,6 +110,9 @@ pub struct Worker {
     /// The state in the fleet's storages instead of `checkpoint_path` (`daemon.state =
     /// "zenoh"`).
     remote: Option<Remote>,
+    /// Inputs are being handled again ([`Worker::resume`]): no checkpoint until all are,
+    /// since none could say where among them it stands.
+    replaying: bool,
 }
 
 /// Where a starting worker finds the inputs it must handle again.
@@ -158,6 +161,7 @@ impl Worker {
             handled_upto: None,
             front,
             remote: None,
+            replaying: false,
         };
         w.update_status()?;
         Ok(w)
@@ -199,12 +203,16 @@ impl Worker {
             }
         }
         self.handled_upto = Some(self.out.log(|log| log.next_input())?);
+        if let Some(r) = self.remote.as_mut() {
+            r.resumed();
+        }
         self.checkpoint()
     }
 
     /// Handles inputs (environment reading or not, log time, bytes) again, in order.
     fn handle_again(&mut self, inputs: Vec<(bool, u64, Vec<u8>)>, what: &str) -> Result<()> {
         let n = inputs.len() as u64;
+        self.replaying = true;
         for (environment, time, data) in inputs {
             if environment {
                 let actions = self.tracker.handle_environment(from_ns(time), &data);
@@ -214,6 +222,7 @@ impl Worker {
             }
             self.out.shared.beat();
         }
+        self.replaying = false;
         self.out.shared.with_status(|st| st.replayed += n);
         if n > 0 {
             tracing::info!(

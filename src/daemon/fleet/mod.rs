@@ -29,7 +29,7 @@ use std::time::Duration;
 use anyhow::{Result, anyhow};
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
-use zenoh::sample::SampleKind;
+use zenoh::sample::{Locality, SampleKind};
 
 use super::lane::Lane;
 use super::metrics::Watched;
@@ -64,15 +64,27 @@ impl Fleet {
     ) -> Result<Fleet> {
         let f = &settings.fleet;
         let members_ke = format!("boltwatch/@fleet/{}/*", f.group);
+        // Both followed through unbounded channels: a callback must never block Zenoh's
+        // receiving task, and the controller is busy for seconds at a time (takeovers,
+        // hand-backs). Its own records are not echoed back to it.
+        let (events, events_rx) = tokio::sync::mpsc::unbounded_channel();
+        let to_members = events.clone();
         let members_sub = session
             .liveliness()
             .declare_subscriber(&members_ke)
+            .callback(move |s| {
+                let _ = to_members.send(Event::Member(s));
+            })
             .await
             .map_err(zerr(format!(
                 "cannot follow the group's tokens {members_ke}"
             )))?;
         let owners_sub = session
             .declare_subscriber("boltwatch/*/@state/owner")
+            .allowed_origin(Locality::Remote)
+            .callback(move |s| {
+                let _ = events.send(Event::Record(s));
+            })
             .await
             .map_err(zerr("cannot follow the owner records"))?;
         let token = session
@@ -99,8 +111,8 @@ impl Fleet {
         );
         let (stop, stopped) = oneshot::channel();
         let task = tokio::spawn(async move {
-            let r = c.control(members_sub, owners_sub, stopped).await;
-            drop(token);
+            let r = c.control(events_rx, stopped).await;
+            drop((members_sub, owners_sub, token));
             r
         });
         Ok(Fleet { stop, task })
@@ -146,24 +158,29 @@ struct Controller {
     done: DoneTx,
 }
 
-type Samples =
-    zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>;
+/// What the controller hears: a member's token coming or going, an owner record put.
+enum Event {
+    Member(zenoh::sample::Sample),
+    Record(zenoh::sample::Sample),
+}
 
 impl Controller {
     /// Follows members and owner records until told to stop, reconciling ownership after
     /// each change and every [`RECONCILE_EVERY`]; then hands every lane back.
     async fn control(
         &mut self,
-        members: Samples,
-        owners: Samples,
+        mut events: tokio::sync::mpsc::UnboundedReceiver<Event>,
         mut stop: oneshot::Receiver<()>,
     ) -> Result<()> {
         let mut tick = tokio::time::interval(RECONCILE_EVERY);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
             tokio::select! {
                 _ = &mut stop => break,
-                Ok(s) = members.recv_async() => self.member_changed(&s),
-                Ok(s) = owners.recv_async() => self.record_seen(&s).await,
+                Some(e) = events.recv() => match e {
+                    Event::Member(s) => self.member_changed(&s),
+                    Event::Record(s) => self.record_seen(&s).await,
+                },
                 _ = tick.tick() => {}
             }
             self.reconcile().await;

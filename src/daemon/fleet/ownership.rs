@@ -74,6 +74,11 @@ impl Controller {
         };
         unwatch(&self.watched, name);
         let fence = lane.fence.clone();
+        if let Some(f) = &fence {
+            // With no storage answering, the final checkpoint is given up rather than
+            // waited for forever (the record is then not released either).
+            f.closing();
+        }
         lane.close().await?;
         if let Some(f) = fence
             && !f.is_fenced()

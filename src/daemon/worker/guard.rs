@@ -60,7 +60,7 @@ impl Worker {
         }));
         let failure = match done {
             Ok(Ok(d)) => {
-                if d.checkpoint_due {
+                if d.checkpoint_due && !self.replaying {
                     self.checkpoint()?;
                 }
                 return Ok(());

@@ -35,8 +35,11 @@ impl Worker {
             .map(|input| self.wal_entry(&shared, input, &mut logged))
             .collect::<Result<Vec<_>>>()?;
         let positions = self.write_ahead(&shared, entries)?;
-        for (input, pos) in batch.into_iter().zip(positions) {
+        for (input, (pos, seq)) in batch.into_iter().zip(positions) {
             self.handle_input(&shared, input, pos)?;
+            if let (Some(seq), Some(r)) = (seq, self.remote.as_mut()) {
+                r.handled(seq);
+            }
             shared.beat();
         }
         self.update_status()
@@ -77,11 +80,12 @@ impl Worker {
         &mut self,
         shared: &Shared,
         entries: Vec<Option<WalEntry>>,
-    ) -> Result<Vec<Option<WalPosition>>> {
+    ) -> Result<Vec<(Option<WalPosition>, Option<u64>)>> {
         let logged = entries.iter().flatten().count() as u64;
         if logged == 0 {
-            return Ok(vec![None; entries.len()]);
+            return Ok(vec![(None, None); entries.len()]);
         }
+        let logged_at: Vec<bool> = entries.iter().map(Option::is_some).collect();
         let remote_entries: Vec<RemoteEntry> = match self.remote {
             Some(_) => entries
                 .iter()
@@ -106,15 +110,21 @@ impl Worker {
             log.sync()?;
             Ok((positions, t.elapsed().as_secs_f64() * 1e3))
         })?;
-        if let Some(remote) = self.remote.as_mut() {
-            remote.put_entries(&remote_entries)?;
-        }
+        let mut seqs = match self.remote.as_mut() {
+            Some(remote) => remote.put_entries(&remote_entries)?.into_iter(),
+            None => Vec::new().into_iter(),
+        };
+        // Each logged input's number among the remote entries, in order.
+        let seqs: Vec<Option<u64>> = logged_at
+            .iter()
+            .map(|&l| if l { seqs.next().flatten() } else { None })
+            .collect();
         shared.with_status(|st| {
             st.wal.syncs += 1;
             st.wal.sets += logged;
             st.wal.sync_ms += ms;
         });
-        Ok(positions)
+        Ok(positions.into_iter().zip(seqs).collect())
     }
 
     /// Handles one input of a committed batch; `pos` is where it was logged, if it was.
@@ -197,16 +207,20 @@ impl Worker {
                     log.sync()?;
                     Ok(pos)
                 })?;
-                if let Some(remote) = self.remote.as_mut() {
-                    remote.put_entries(&[RemoteEntry {
+                let seq = match self.remote.as_mut() {
+                    Some(remote) => remote.put_entries(&[RemoteEntry {
                         suffix: "modal",
                         time_ns: time,
                         bytes: bytes.clone(),
-                    }])?;
-                }
+                    }])?[0],
+                    None => None,
+                };
                 emit(&mut self.out, Output::Modal(set))?;
                 self.handle(received, &bytes)?;
                 self.handled_upto = Some(pos.after());
+                if let (Some(seq), Some(r)) = (seq, self.remote.as_mut()) {
+                    r.handled(seq);
+                }
             }
             FrontEvent::Refused(rej) => {
                 let head = &payload[..payload.len().min(REJECTED_PAYLOAD_LIMIT)];

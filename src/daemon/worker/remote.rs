@@ -1,9 +1,10 @@
 //! A fleet lane's state in the Zenoh storages (`daemon.state = "zenoh"`, layout in
 //! [`crate::daemon::fleet::state`]): each input is put as a write-ahead entry before it is
-//! handled, each checkpoint is put with the position after the entries it covers, and then
-//! the entries and older checkpoints it makes obsolete are deleted. Every write first asks
-//! the lane's [`Fence`]: a daemon whose epoch moved on writes nothing.
+//! handled, each checkpoint is put with the position after the last entry handled, and then
+//! the entries and older state it makes obsolete are deleted. Every write first asks the
+//! lane's [`Fence`]: a daemon whose epoch moved on writes nothing.
 
+use std::collections::VecDeque;
 use std::sync::Arc;
 
 use anyhow::Result;
@@ -22,58 +23,90 @@ pub struct Remote {
     pub fence: Arc<Fence>,
     /// The next write-ahead entry's number in this epoch.
     next_seq: u64,
-    /// Keys the next checkpoint makes obsolete: the state fetched at the takeover, and the
-    /// entries put since the last checkpoint.
-    obsolete: Vec<String>,
+    /// The first entry of this epoch not yet handled (what a checkpoint records).
+    handled_next: u64,
+    /// Entries of this epoch put and not yet deleted, oldest first.
+    own: VecDeque<u64>,
+    /// The state fetched at the takeover: obsolete once the tail it held has been handled
+    /// again and a checkpoint of this epoch covers it.
+    fetched: Vec<String>,
+    /// The tail has been handled again ([`Remote::resumed`]).
+    resumed: bool,
 }
 
 impl Remote {
-    /// A link for the epoch of `fence`; `obsolete`: the keys of the state taken over.
-    pub fn new(session: zenoh::Session, fence: Arc<Fence>, obsolete: Vec<String>) -> Self {
+    /// A link for the epoch of `fence`; `fetched`: the keys of the state taken over.
+    pub fn new(session: zenoh::Session, fence: Arc<Fence>, fetched: Vec<String>) -> Self {
         Self {
             session,
             fence,
             next_seq: 0,
-            obsolete,
+            handled_next: 0,
+            own: VecDeque::new(),
+            fetched,
+            resumed: false,
         }
     }
 
-    /// Puts `entries` in order as the epoch's next write-ahead entries (none once fenced).
-    pub fn put_entries(&mut self, entries: &[WalEntry]) -> Result<()> {
+    /// Puts `entries` in order as the epoch's next write-ahead entries; the number of each
+    /// (`None` once fenced: not stored).
+    pub fn put_entries(&mut self, entries: &[WalEntry]) -> Result<Vec<Option<u64>>> {
+        let mut seqs = Vec::with_capacity(entries.len());
         for e in entries {
             if !self.fence.allows() {
-                return Ok(());
+                seqs.push(None);
+                continue;
             }
-            let key = wal_key(&self.fence.structure, self.fence.epoch, self.next_seq);
-            self.put(&key, e.encode())?;
-            self.obsolete.push(key);
+            let seq = self.next_seq;
+            self.put(&wal_key(&self.fence.structure, self.fence.epoch, seq), e.encode())?;
+            self.own.push_back(seq);
             self.next_seq += 1;
+            seqs.push(Some(seq));
         }
-        Ok(())
+        Ok(seqs)
     }
 
-    /// Puts the checkpoint `c` of the state after every entry put so far, then deletes
-    /// what it makes obsolete (none of it once fenced).
+    /// Entry `seq` has been handled: a checkpoint from now on covers it.
+    pub fn handled(&mut self, seq: u64) {
+        self.handled_next = self.handled_next.max(seq + 1);
+    }
+
+    /// The tail fetched at the takeover has been handled again: the next checkpoint covers
+    /// it, and deletes it.
+    pub fn resumed(&mut self) {
+        self.resumed = true;
+    }
+
+    /// Puts the checkpoint `c`, taken after the entries handled so far, then deletes what
+    /// it makes obsolete (none of it once fenced).
     pub fn put_checkpoint(&mut self, mut c: Checkpoint<TrackerState>) -> Result<()> {
         if !self.fence.allows() {
             return Ok(());
         }
-        let (structure, epoch) = (&self.fence.structure, self.fence.epoch);
+        let (structure, epoch) = (self.fence.structure.clone(), self.fence.epoch);
         c.fleet = Some(FleetPosition {
             epoch,
             owner: self.fence.owner.clone(),
-            next: self.next_seq,
+            next: self.handled_next,
         });
-        let key = checkpoint_key(structure, epoch);
+        let key = checkpoint_key(&structure, epoch);
         self.put(&key, to_wire(&c))?;
-        for k in std::mem::take(&mut self.obsolete) {
-            if k != key {
-                self.session
-                    .delete(&k)
-                    .congestion_control(CongestionControl::Block)
-                    .wait()
-                    .map_err(zerr(format!("cannot delete {k}")))?;
-            }
+        let mut obsolete = Vec::new();
+        if self.resumed {
+            obsolete.extend(std::mem::take(&mut self.fetched).into_iter().filter(|k| *k != key));
+        }
+        while let Some(&seq) = self.own.front()
+            && seq < self.handled_next
+        {
+            obsolete.push(wal_key(&structure, epoch, seq));
+            self.own.pop_front();
+        }
+        for k in obsolete {
+            self.session
+                .delete(&k)
+                .congestion_control(CongestionControl::Block)
+                .wait()
+                .map_err(zerr(format!("cannot delete {k}")))?;
         }
         Ok(())
     }
