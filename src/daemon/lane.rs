@@ -87,13 +87,17 @@ impl Lane {
             thread: Some(thread),
             tx,
         };
-        lane.subscribers
-            .push(subscribe_modal(session, &s.name, &intake).await?);
-        lane.subscribers
-            .push(subscribe_accel(session, &s.name, &intake).await?);
-        lane.subscribers
-            .push(subscribe_environment(session, &s.name, &intake).await?);
-        lane.queryable = Some(declare_status(session, &s.name, &lane.shared).await?);
+        if let Err(e) = lane.declare(session, &s.name, &intake).await {
+            // The thread has resumed and may write: stand it down before failing.
+            if let Some(f) = &lane.fence {
+                f.fence();
+                f.closing();
+            }
+            if let Err(c) = lane.close().await {
+                tracing::error!(structure = s.name, "closing the lane that failed: {c:#}");
+            }
+            return Err(e);
+        }
         tracing::info!(
             structure = s.name,
             "watching {} (status on {})",
@@ -101,6 +105,23 @@ impl Lane {
             topic(&s.name, "status")
         );
         Ok(lane)
+    }
+
+    /// Declares the lane's subscribers and its status queryable.
+    async fn declare(
+        &mut self,
+        session: &zenoh::Session,
+        name: &str,
+        intake: &Intake,
+    ) -> Result<()> {
+        self.subscribers
+            .push(subscribe_modal(session, name, intake).await?);
+        self.subscribers
+            .push(subscribe_accel(session, name, intake).await?);
+        self.subscribers
+            .push(subscribe_environment(session, name, intake).await?);
+        self.queryable = Some(declare_status(session, name, &self.shared).await?);
+        Ok(())
     }
 
     /// Stops the intake: no new input from here on (what is queued is still handled).
@@ -208,7 +229,7 @@ fn recover(
         }
         LaneState::Remote { fence, fetched } => {
             let (t, tail) = restore_remote(settings, s, model, &fetched)?;
-            let obsolete = fetched.obsolete_keys(&s.name);
+            let obsolete = fetched.obsolete_keys();
             let remote = Remote::new(session.clone(), fence, obsolete);
             (t, Resume::Remote(tail), Some(remote))
         }
@@ -300,7 +321,9 @@ fn restore_remote(
     model: Model,
     fetched: &Fetched,
 ) -> Result<(Tracker, Vec<WalEntry>)> {
-    let (c, tail) = fetched.tail();
+    let (c, tail) = fetched
+        .tail()
+        .with_context(|| format!("the stored state of {}", s.name))?;
     let tail: Vec<WalEntry> = tail.into_iter().cloned().collect();
     let tracker = match c {
         Some(c) => {

@@ -267,8 +267,12 @@ impl Worker {
                 self.checkpoint()?;
             }
         }
-        self.lane
-            .drain_for(CROSSCHECK_SHUTDOWN_WAIT, &mut self.out)?;
+        // A fenced lane publishes nothing more: no cross-check is worth waiting for.
+        let fenced = self.remote.as_ref().is_some_and(|r| r.fence.is_fenced());
+        if !fenced {
+            self.lane
+                .drain_for(CROSSCHECK_SHUTDOWN_WAIT, &mut self.out)?;
+        }
         if let Some(e) = self.front.finish() {
             self.front_event(Utc::now(), &[], e)?;
         }

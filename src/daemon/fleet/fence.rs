@@ -6,10 +6,10 @@
 //! record, and on waking its threads would carry on where they stopped. So every output and
 //! every state write first asks [`Fence::allows`]: within [`CONFIRM_WINDOW`] of the last
 //! confirmation it is allowed; after it, the owner record is read again from the storages,
-//! and a newer epoch fences the lane for good. A takeover needs the owner's liveliness
-//! token gone, which takes a Zenoh lease (seconds) of silence, longer than the window: a
-//! daemon that was away long enough to be replaced finds its confirmation stale and reads
-//! the record before anything else goes out.
+//! and a newer epoch, or its own epoch taken by another member, fences the lane for good.
+//! A takeover needs the owner's liveliness token gone, which takes a Zenoh lease (seconds)
+//! of silence, longer than the window: a daemon that was away long enough to be replaced
+//! finds its confirmation stale and reads the record before anything else goes out.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -95,13 +95,15 @@ impl Fence {
                     return true;
                 }
             }
+            // The confirmation holds from the moment of asking, not of the answer.
+            let asked = Instant::now();
             match read_owner(&self.session, &self.structure) {
-                Ok(r) if r.supersedes(self.epoch, &self.owner) => {
+                Ok(r) if r.fences(self.epoch, &self.owner) => {
                     self.fence();
                     return false;
                 }
                 Ok(_) => {
-                    self.lock().0 = Instant::now();
+                    self.lock().0 = asked;
                     return true;
                 }
                 Err(e) => {

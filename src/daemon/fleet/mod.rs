@@ -42,6 +42,21 @@ use state::OwnerRecord;
 /// waited for a hand-back, a storage that did not answer).
 const RECONCILE_EVERY: Duration = Duration::from_millis(500);
 
+/// How often the members are listed again (a token event that a reconnecting link lost).
+const MEMBERS_EVERY: Duration = Duration::from_secs(2);
+
+/// How long a member that just joined only listens to the group before it takes anything
+/// over: members starting together (a site powering up) then share the structures out
+/// once, instead of each taking all and handing most back.
+const JOIN_SETTLE: Duration = Duration::from_secs(1);
+
+/// The longest a failed takeover waits before it is tried again (doubling from 1 s).
+const BACKOFF_MAX: Duration = Duration::from_secs(30);
+
+/// How long leaving the fleet may take: every lane closed and released, below systemd's
+/// stop timeout of the deployed unit.
+const STOP_DEADLINE: Duration = Duration::from_secs(90);
+
 /// The key of a member's liveliness token.
 pub fn member_key(group: &str, id: &str) -> String {
     format!("boltwatch/@fleet/{group}/{id}")
@@ -95,7 +110,11 @@ impl Fleet {
         let mut c = Controller {
             me: f.id.clone(),
             members: BTreeSet::from([f.id.clone()]),
+            absent: BTreeSet::new(),
             lanes: BTreeMap::new(),
+            pending: BTreeMap::new(),
+            backoff: BTreeMap::new(),
+            members_ke: members_ke.clone(),
             settings: settings.clone(),
             session,
             watched,
@@ -122,9 +141,13 @@ impl Fleet {
     /// token withdrawn.
     pub async fn stop(self) -> Result<()> {
         let _ = self.stop.send(());
-        self.task
-            .await
-            .map_err(|e| anyhow!("the fleet controller: {e}"))?
+        match tokio::time::timeout(STOP_DEADLINE, self.task).await {
+            Ok(r) => r.map_err(|e| anyhow!("the fleet controller: {e}"))?,
+            Err(_) => Err(anyhow!(
+                "leaving the fleet took more than {} s: lanes not handed back are taken over once this daemon's token is gone",
+                STOP_DEADLINE.as_secs()
+            )),
+        }
     }
 }
 
@@ -151,7 +174,15 @@ async fn present_members(session: &zenoh::Session, ke: &str) -> Result<Vec<Strin
 struct Controller {
     me: String,
     members: BTreeSet<String>,
+    /// Members missing from the last listing (removed if missing from the next too).
+    absent: BTreeSet<String>,
     lanes: BTreeMap<String, Lane>,
+    /// Records of this member to release (structure → epoch), retried until done.
+    pending: BTreeMap<String, u64>,
+    /// Structures whose takeover failed: not tried again before the instant, and the
+    /// next wait.
+    backoff: BTreeMap<String, (tokio::time::Instant, Duration)>,
+    members_ke: String,
     settings: Arc<Settings>,
     session: zenoh::Session,
     watched: Watched,
@@ -174,6 +205,11 @@ impl Controller {
     ) -> Result<()> {
         let mut tick = tokio::time::interval(RECONCILE_EVERY);
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        let mut list = tokio::time::interval(MEMBERS_EVERY);
+        list.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        let settle = tokio::time::sleep(JOIN_SETTLE);
+        tokio::pin!(settle);
+        let mut settled = false;
         loop {
             tokio::select! {
                 _ = &mut stop => break,
@@ -181,15 +217,90 @@ impl Controller {
                     Event::Member(s) => self.member_changed(&s),
                     Event::Record(s) => self.record_seen(&s).await,
                 },
+                _ = list.tick() => self.list_members().await,
                 _ = tick.tick() => {}
+                _ = &mut settle, if !settled => settled = true,
             }
-            self.reconcile().await;
+            if settled {
+                self.reconcile().await;
+            }
         }
-        let names: Vec<String> = self.lanes.keys().cloned().collect();
-        for name in names {
-            self.hand_back(&name).await?;
-        }
+        drop(events);
+        self.leave().await;
         Ok(())
+    }
+
+    /// Hands every lane back at once: all intakes stopped, all queues drained together,
+    /// then each record released.
+    async fn leave(&mut self) {
+        let mut closing = tokio::task::JoinSet::new();
+        for (name, lane) in std::mem::take(&mut self.lanes) {
+            unwatch(&self.watched, &name);
+            if let Some(f) = &lane.fence {
+                f.closing();
+                if !f.is_fenced() {
+                    self.pending.insert(name.clone(), f.epoch);
+                }
+            }
+            closing.spawn(async move { (name, lane.close().await) });
+        }
+        while let Some(r) = closing.join_next().await {
+            match r {
+                Ok((name, Err(e))) => tracing::error!(structure = name, "closing: {e:#}"),
+                Err(e) => tracing::error!("closing a lane: {e}"),
+                Ok(_) => {}
+            }
+        }
+        let names: Vec<String> = self.pending.keys().cloned().collect();
+        for name in names {
+            self.release_pending(&name).await;
+        }
+    }
+
+    /// Lists the group's tokens again: a member missed by an event is added; one missing
+    /// from two listings in a row is removed (one listing may come while a link is
+    /// reconnecting).
+    async fn list_members(&mut self) {
+        let Ok(listed) = present_members(&self.session, &self.members_ke).await else {
+            return;
+        };
+        let listed: BTreeSet<String> = listed.into_iter().collect();
+        let mut changed = false;
+        for id in listed
+            .difference(&self.members)
+            .cloned()
+            .collect::<Vec<_>>()
+        {
+            tracing::warn!(
+                member = id,
+                "a member's token was found by listing the group"
+            );
+            changed |= self.members.insert(id);
+        }
+        let missing: BTreeSet<String> = self
+            .members
+            .iter()
+            .filter(|m| **m != self.me && !listed.contains(*m))
+            .cloned()
+            .collect();
+        for id in missing.intersection(&self.absent) {
+            tracing::warn!(
+                member = id,
+                "a member's token is gone (found by listing the group)"
+            );
+            changed |= self.members.remove(id);
+        }
+        self.absent = missing;
+        if changed {
+            self.expire_fences();
+            tracing::info!(members = ?self.members, "fleet membership changed");
+        }
+    }
+
+    fn expire_fences(&self) {
+        for f in self.lanes.values().filter_map(|l| l.fence.as_ref()) {
+            f.expire();
+        }
     }
 
     fn member_changed(&mut self, s: &zenoh::sample::Sample) {
@@ -208,9 +319,7 @@ impl Controller {
         if changed {
             // Any change may be this daemon's own link going or coming back: every lane
             // confirms its epoch again before its next output.
-            for f in self.lanes.values().filter_map(|l| l.fence.as_ref()) {
-                f.expire();
-            }
+            self.expire_fences();
             tracing::info!(
                 member = id,
                 joined,
@@ -220,19 +329,21 @@ impl Controller {
         }
     }
 
-    /// An owner record was put: a lane of this daemon that it supersedes is fenced and
-    /// closed without writing anything more.
+    /// An owner record was put: a lane of this daemon whose epoch it passes is fenced and
+    /// closed without writing anything more. Another member's record of the lane's own
+    /// epoch makes the lane ask the storages which of the two they kept.
     async fn record_seen(&mut self, s: &zenoh::sample::Sample) {
         let Ok(r) = serde_json::from_slice::<OwnerRecord>(&s.payload().to_bytes()) else {
             tracing::warn!("an owner record on {} is not valid", s.key_expr());
             return;
         };
-        let superseded = self.lanes.get(&r.structure).is_some_and(|l| {
-            l.fence
-                .as_ref()
-                .is_some_and(|f| r.supersedes(f.epoch, &f.owner))
-        });
-        if superseded {
+        let Some(f) = self.lanes.get(&r.structure).and_then(|l| l.fence.clone()) else {
+            return;
+        };
+        if r.epoch == f.epoch && r.owner != f.owner {
+            f.expire();
+        }
+        if r.epoch > f.epoch {
             tracing::warn!(
                 structure = r.structure,
                 owner = r.owner,
@@ -255,18 +366,44 @@ impl Controller {
         for name in fenced {
             self.abandon(&name).await;
         }
+        let pending: Vec<String> = self.pending.keys().cloned().collect();
+        for name in pending {
+            self.release_pending(&name).await;
+        }
         let settings = self.settings.clone();
         for s in &settings.structures {
             let mine = rendezvous::owner(self.members.iter().map(String::as_str), &s.name)
                 == Some(self.me.as_str());
-            let running = self.lanes.contains_key(&s.name);
-            let r = match (mine, running) {
-                (true, false) => self.take_over(s).await,
+            match (mine, self.lanes.contains_key(&s.name)) {
+                (true, false) => self.try_take_over(s).await,
                 (false, true) => self.hand_back(&s.name).await,
-                _ => Ok(()),
-            };
-            if let Err(e) = r {
-                tracing::error!(structure = s.name, "{e:#}");
+                _ => {}
+            }
+        }
+    }
+
+    /// A takeover, unless a failed one of the structure is still backing off; a failure
+    /// doubles the wait (up to [`BACKOFF_MAX`]).
+    async fn try_take_over(&mut self, s: &crate::settings::StructureSettings) {
+        let now = tokio::time::Instant::now();
+        if self
+            .backoff
+            .get(&s.name)
+            .is_some_and(|(until, _)| now < *until)
+        {
+            return;
+        }
+        match self.take_over(s).await {
+            Ok(()) => {
+                self.backoff.remove(&s.name);
+            }
+            Err(e) => {
+                let wait = self
+                    .backoff
+                    .get(&s.name)
+                    .map_or(Duration::from_secs(1), |(_, w)| (*w * 2).min(BACKOFF_MAX));
+                tracing::error!(structure = s.name, retry_in_s = wait.as_secs(), "{e:#}");
+                self.backoff.insert(s.name.clone(), (now + wait, wait));
             }
         }
     }

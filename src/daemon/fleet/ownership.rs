@@ -1,11 +1,11 @@
 //! The controller's three moves on one structure: take it over (a new epoch), hand it back
 //! (drained, state written, record released), abandon it (fenced: nothing more written).
 
-use anyhow::{Context, Result, anyhow};
+use anyhow::{Context, Result, anyhow, bail};
 use chrono::Utc;
 use zenoh::qos::CongestionControl;
 
-use std::sync::Arc;
+use std::time::Duration;
 
 use super::fence::{Fence, read_owner};
 use super::state::{self, OwnerRecord, owner_key};
@@ -17,8 +17,9 @@ use crate::settings::StructureSettings;
 
 impl Controller {
     /// Takes `s` over, unless its record names a live member that has not handed it back
-    /// (then the next reconcile looks again): a new epoch in the owner record, then a lane
-    /// resumed from the stored checkpoint and write-ahead tail.
+    /// (then the next reconcile looks again): a new epoch in the owner record, confirmed
+    /// from the storages, then a lane resumed from the stored checkpoint and write-ahead
+    /// tail.
     pub(super) async fn take_over(&mut self, s: &StructureSettings) -> Result<()> {
         let session = self.session.clone();
         let name = s.name.clone();
@@ -37,6 +38,10 @@ impl Controller {
             );
             return Ok(());
         }
+        // A state that cannot be resumed is refused before it costs an epoch.
+        fetched
+            .tail()
+            .with_context(|| format!("the stored state of {}", s.name))?;
         let epoch = 1 + fetched.latest_epoch();
         let record = OwnerRecord {
             structure: s.name.clone(),
@@ -46,11 +51,14 @@ impl Controller {
             since: rfc3339(Utc::now()),
         };
         put_record(&self.session, &record).await?;
+        self.pending.insert(s.name.clone(), epoch);
+        confirm(&self.session, &record).await?;
         let fence = Fence::new(self.session.clone(), &s.name, &self.me, epoch);
         let state = LaneState::Remote { fence, fetched };
         let lane = Lane::open(&self.settings, s, &self.session, state, &self.done)
             .await
             .with_context(|| format!("taking {} over at epoch {epoch}", s.name))?;
+        self.pending.remove(&s.name);
         lane.shared.with_status(|st| {
             st.ownership = Some(Ownership {
                 group: self.settings.fleet.group.clone(),
@@ -68,9 +76,9 @@ impl Controller {
 
     /// Hands `name` back: its lane closed (every queued set handled, the checkpoint
     /// written), then its record released for the member whose turn it is.
-    pub(super) async fn hand_back(&mut self, name: &str) -> Result<()> {
+    pub(super) async fn hand_back(&mut self, name: &str) {
         let Some(lane) = self.lanes.remove(name) else {
-            return Ok(());
+            return;
         };
         unwatch(&self.watched, name);
         let fence = lane.fence.clone();
@@ -79,34 +87,26 @@ impl Controller {
             // waited for forever (the record is then not released either).
             f.closing();
         }
-        lane.close().await?;
+        if let Err(e) = lane.close().await {
+            tracing::error!(structure = name, "closing the lane: {e:#}");
+        }
         if let Some(f) = fence
             && !f.is_fenced()
-            && still_current(&self.session, &f).await
         {
-            let record = OwnerRecord {
-                structure: name.to_string(),
-                epoch: f.epoch,
-                owner: self.me.clone(),
-                released: true,
-                since: rfc3339(Utc::now()),
-            };
-            put_record(&self.session, &record).await?;
-            tracing::info!(
-                structure = name,
-                epoch = f.epoch,
-                "handed the structure back"
-            );
+            self.pending.insert(name.to_string(), f.epoch);
         }
-        Ok(())
+        self.release_pending(name).await;
     }
 
-    /// Closes the lane of `name`, whose epoch moved on, without publishing or writing.
+    /// Closes the lane of `name`, whose epoch moved on, without publishing or writing. If
+    /// the storages still name this member for its epoch (two members took the same
+    /// epoch, and both stood down), the record is released so that another can go on.
     pub(super) async fn abandon(&mut self, name: &str) {
         let Some(lane) = self.lanes.remove(name) else {
             return;
         };
         unwatch(&self.watched, name);
+        let epoch = lane.fence.as_ref().map(|f| f.epoch);
         if let Some(f) = &lane.fence {
             f.fence();
             f.closing();
@@ -114,23 +114,72 @@ impl Controller {
         if let Err(e) = lane.close().await {
             tracing::error!(structure = name, "closing the fenced lane: {e:#}");
         }
+        if let Some(epoch) = epoch {
+            self.pending.insert(name.to_string(), epoch);
+            self.release_pending(name).await;
+        }
+    }
+
+    /// Releases the record of `name` left by this member (a hand-back, a fenced lane, a
+    /// takeover that failed after its record was put), if the storages still hold it;
+    /// kept for the next reconcile when they cannot be read.
+    pub(super) async fn release_pending(&mut self, name: &str) {
+        let Some(&epoch) = self.pending.get(name) else {
+            return;
+        };
+        if self.lanes.contains_key(name) {
+            self.pending.remove(name);
+            return;
+        }
+        let (session, structure) = (self.session.clone(), name.to_string());
+        let read = tokio::task::spawn_blocking(move || read_owner(&session, &structure)).await;
+        let r = match read.map_err(anyhow::Error::from).and_then(|r| r) {
+            Ok(r) => r,
+            Err(e) => {
+                tracing::warn!(structure = name, "not released yet: {e:#}");
+                return;
+            }
+        };
+        if r.epoch == epoch && r.owner == self.me && !r.released {
+            let record = OwnerRecord {
+                released: true,
+                since: rfc3339(Utc::now()),
+                ..r
+            };
+            if let Err(e) = put_record(&self.session, &record).await {
+                tracing::warn!(structure = name, "not released yet: {e:#}");
+                return;
+            }
+            tracing::info!(structure = name, epoch, "handed the structure back");
+        }
+        self.pending.remove(name);
     }
 }
 
-/// Whether the owner record is still the lane's own (read from the storages): a member that
-/// was cut off must not release, over a newer owner's record, an epoch that moved on.
-async fn still_current(session: &zenoh::Session, f: &Arc<Fence>) -> bool {
-    let (session, structure) = (session.clone(), f.structure.clone());
-    let read = tokio::task::spawn_blocking(move || read_owner(&session, &structure)).await;
-    match read {
-        Ok(Ok(r)) => !r.supersedes(f.epoch, &f.owner),
-        Ok(Err(e)) => {
-            tracing::warn!(structure = f.structure, "not releasing: {e:#}");
-            false
-        }
-        Err(e) => {
-            tracing::warn!(structure = f.structure, "not releasing: {e}");
-            false
+/// How long a takeover waits for the storages to hold its record.
+const CONFIRM_TIMEOUT: Duration = Duration::from_secs(3);
+
+/// Waits until the storages hold `record` (the takeover's epoch is this member's), or
+/// fails: another member's record of the same or a later epoch, or no confirmation.
+async fn confirm(session: &zenoh::Session, record: &OwnerRecord) -> Result<()> {
+    let deadline = tokio::time::Instant::now() + CONFIRM_TIMEOUT;
+    loop {
+        let (session, structure) = (session.clone(), record.structure.clone());
+        let read = tokio::task::spawn_blocking(move || read_owner(&session, &structure)).await?;
+        match read {
+            Ok(r) if r == *record => return Ok(()),
+            Ok(r) if r.fences(record.epoch, &record.owner) => bail!(
+                "{} was taken at epoch {} by {} meanwhile",
+                r.structure,
+                r.epoch,
+                r.owner
+            ),
+            _ if tokio::time::Instant::now() >= deadline => bail!(
+                "the storages did not confirm epoch {} of {}",
+                record.epoch,
+                record.structure
+            ),
+            _ => tokio::time::sleep(Duration::from_millis(50)).await,
         }
     }
 }

@@ -3,11 +3,17 @@
 //!
 //! - `owner`: the [`OwnerRecord`], who tracks the structure in which epoch; put at each
 //!   takeover (a new epoch) and when its owner hands it back;
-//! - `checkpoint/<epoch>`: the tracker's checkpoint written by that epoch's owner, with its
-//!   [`FleetPosition`] in the write-ahead tail;
-//! - `wal/<epoch>/<seq>`: the inputs (modal sets, environment readings) each owner received,
-//!   put before it handles them, in the order it handled them; deleted once a checkpoint
+//! - `checkpoint/<owner>`: the last checkpoint that member wrote, with its
+//!   [`FleetPosition`] (epoch, owner, next write-ahead number);
+//! - `wal/<owner>/<slot>`: the inputs (modal sets, environment readings) the member
+//!   received, each with its epoch and number, put before it handles them, in the order it
+//!   handles them, in a ring of [`WAL_SLOTS`] keys per member; deleted once a checkpoint
 //!   covers them.
+//!
+//! The owner is part of every key, so two members that took the same epoch (before they saw
+//! each other) never overwrite each other's state; of the two, the epoch's owner is the one
+//! the record names ([`Fetched::epoch_owner`]). The ring keeps the number of distinct keys,
+//! and so the storages' replication logs of deletions, bounded however long the fleet runs.
 //!
 //! A new owner fetches all of it at once ([`fetch`]) and resumes from the latest checkpoint
 //! and the entries after it ([`Fetched::tail`]), in the order they were handled, so its
@@ -46,21 +52,35 @@ impl OwnerRecord {
     pub fn supersedes(&self, epoch: u64, owner: &str) -> bool {
         (self.epoch, self.owner.as_str()) > (epoch, owner)
     }
+
+    /// Whether a lane of `owner` in `epoch` must stand down when this record is the one
+    /// stored: a newer epoch, or the same epoch taken by another member (of two members
+    /// racing for one epoch, the one whose record the storages kept goes on).
+    pub fn fences(&self, epoch: u64, owner: &str) -> bool {
+        self.epoch > epoch || (self.epoch == epoch && self.owner != owner)
+    }
 }
+
+/// The number of write-ahead keys per member and structure: entries go round the ring, and
+/// a checkpoint is due before a put would reach an entry not yet covered.
+pub const WAL_SLOTS: u64 = 1024;
 
 /// The key of `structure`'s owner record.
 pub fn owner_key(structure: &str) -> String {
     format!("boltwatch/{structure}/@state/owner")
 }
 
-/// The key of the checkpoint written in `epoch`.
-pub fn checkpoint_key(structure: &str, epoch: u64) -> String {
-    format!("boltwatch/{structure}/@state/checkpoint/{epoch}")
+/// The key of the last checkpoint `owner` wrote.
+pub fn checkpoint_key(structure: &str, owner: &str) -> String {
+    format!("boltwatch/{structure}/@state/checkpoint/{owner}")
 }
 
-/// The key of write-ahead entry `seq` of `epoch`.
-pub fn wal_key(structure: &str, epoch: u64, seq: u64) -> String {
-    format!("boltwatch/{structure}/@state/wal/{epoch}/{seq}")
+/// The key of write-ahead entry `seq` of `owner` (its slot in the ring).
+pub fn wal_key(structure: &str, owner: &str, seq: u64) -> String {
+    format!(
+        "boltwatch/{structure}/@state/wal/{owner}/{}",
+        seq % WAL_SLOTS
+    )
 }
 
 /// One write-ahead entry: the input's topic suffix, its reception time (ns since the epoch)
@@ -72,20 +92,26 @@ pub struct WalEntry {
     pub bytes: Vec<u8>,
 }
 
+/// The size of a stored entry's header: kind, epoch, number, time.
+const WAL_HEADER: usize = 1 + 3 * 8;
+
 impl WalEntry {
-    /// The stored form: a kind byte (0 modal set, 1 environment reading), the time (8 bytes,
-    /// big-endian), the payload.
-    pub fn encode(&self) -> Vec<u8> {
+    /// The stored form of entry `seq` of `epoch`: a kind byte (0 modal set, 1 environment
+    /// reading), the epoch, the number and the time (8 bytes each, big-endian), the payload.
+    pub fn encode(&self, epoch: u64, seq: u64) -> Vec<u8> {
         let kind = u8::from(self.suffix == "environment");
-        let mut v = Vec::with_capacity(9 + self.bytes.len());
+        let mut v = Vec::with_capacity(WAL_HEADER + self.bytes.len());
         v.push(kind);
-        v.extend_from_slice(&self.time_ns.to_be_bytes());
+        for n in [epoch, seq, self.time_ns] {
+            v.extend_from_slice(&n.to_be_bytes());
+        }
         v.extend_from_slice(&self.bytes);
         v
     }
 
-    pub fn decode(v: &[u8]) -> Result<Self> {
-        if v.len() < 9 {
+    /// The entry, its epoch and its number.
+    pub fn decode(v: &[u8]) -> Result<(u64, u64, Self)> {
+        if v.len() < WAL_HEADER {
             bail!("a write-ahead entry of {} bytes is too short", v.len());
         }
         let suffix = match v[0] {
@@ -93,60 +119,99 @@ impl WalEntry {
             1 => "environment",
             k => bail!("write-ahead entry of unknown kind {k}"),
         };
-        let time_ns = u64::from_be_bytes(v[1..9].try_into().expect("8 bytes"));
-        Ok(Self {
+        let n = |i: usize| u64::from_be_bytes(v[1 + 8 * i..9 + 8 * i].try_into().expect("8"));
+        let entry = Self {
             suffix,
-            time_ns,
-            bytes: v[9..].to_vec(),
-        })
+            time_ns: n(2),
+            bytes: v[WAL_HEADER..].to_vec(),
+        };
+        Ok((n(0), n(1), entry))
     }
 }
+
+/// Where stored state was written: (epoch, owner).
+pub type Writer = (u64, String);
 
 /// Everything stored for one structure.
 #[derive(Default)]
 pub struct Fetched {
     pub owner: Option<OwnerRecord>,
-    /// Checkpoints by the epoch they were written in.
-    pub checkpoints: BTreeMap<u64, Checkpoint<TrackerState>>,
-    /// Write-ahead entries by (epoch, seq).
-    pub wal: BTreeMap<(u64, u64), WalEntry>,
+    /// Checkpoints by the epoch and owner they were written in.
+    pub checkpoints: BTreeMap<Writer, Checkpoint<TrackerState>>,
+    /// Write-ahead entries by (epoch, owner, seq).
+    pub wal: BTreeMap<(u64, String, u64), WalEntry>,
+    /// The keys fetched.
+    pub keys: Vec<String>,
 }
 
 impl Fetched {
+    /// The member whose state counts for `epoch`: the record's owner if the record is of
+    /// that epoch, else the greatest id that wrote in it (as [`OwnerRecord::supersedes`]
+    /// ranks two takeovers of one epoch). The other's writes, if two members raced for
+    /// the epoch, are ignored: both heard the same sensors.
+    pub fn epoch_owner(&self, epoch: u64) -> Option<&str> {
+        if let Some(r) = self.owner.as_ref().filter(|r| r.epoch == epoch) {
+            return Some(&r.owner);
+        }
+        let wrote = self.checkpoints.keys().map(|(e, o)| (*e, o));
+        let wrote = wrote.chain(self.wal.keys().map(|(e, o, _)| (*e, o)));
+        wrote
+            .filter(|(e, _)| *e == epoch)
+            .map(|(_, o)| o.as_str())
+            .max()
+    }
+
+    fn counts(&self, epoch: u64, owner: &str) -> bool {
+        self.epoch_owner(epoch) == Some(owner)
+    }
+
     /// The checkpoint to resume from (the latest epoch's) and the entries to handle after
     /// it, in the order they were handled: its epoch's from its position on, then every
-    /// later epoch's.
-    pub fn tail(&self) -> (Option<&Checkpoint<TrackerState>>, Vec<&WalEntry>) {
-        let Some((&epoch, c)) = self.checkpoints.iter().next_back() else {
-            return (None, self.wal.values().collect());
+    /// later epoch's. Entries without any checkpoint mean the checkpoint was lost (every
+    /// owner writes one before its first entry): an error, not a fresh start.
+    pub fn tail(&self) -> Result<(Option<&Checkpoint<TrackerState>>, Vec<&WalEntry>)> {
+        let checkpoint = self
+            .checkpoints
+            .iter()
+            .rev()
+            .find(|((e, o), _)| self.counts(*e, o));
+        let from = match checkpoint {
+            Some((_, c)) => {
+                let f = c.fleet.as_ref().expect("read_value checks the position");
+                (f.epoch, f.next)
+            }
+            None if self.wal.is_empty() => return Ok((None, Vec::new())),
+            None => bail!(
+                "{} write-ahead entries are stored but no checkpoint: the state is incomplete",
+                self.wal.len()
+            ),
         };
-        let next = c.fleet.as_ref().map_or(0, |f| f.next);
         let tail = self
             .wal
-            .range((epoch, next)..)
-            .map(|(_, e)| e)
-            .collect::<Vec<_>>();
-        (Some(c), tail)
+            .iter()
+            .filter(|((e, o, s), _)| (*e, *s) >= from && self.counts(*e, o))
+            .map(|((e, _, s), entry)| ((*e, *s), entry))
+            .collect::<BTreeMap<_, _>>();
+        Ok((checkpoint.map(|(_, c)| c), tail.into_values().collect()))
     }
 
     /// The highest epoch anything stored was written in (0: nothing stored): a takeover
     /// takes the next, even if the record itself was lost or overwritten.
     pub fn latest_epoch(&self) -> u64 {
         let record = self.owner.as_ref().map_or(0, |r| r.epoch);
-        let checkpoint = self.checkpoints.keys().next_back().copied().unwrap_or(0);
-        let wal = self.wal.keys().next_back().map_or(0, |k| k.0);
+        let checkpoint = self.checkpoints.keys().map(|k| k.0).max().unwrap_or(0);
+        let wal = self.wal.keys().map(|k| k.0).max().unwrap_or(0);
         record.max(checkpoint).max(wal)
     }
 
     /// The keys a checkpoint of a later epoch makes obsolete: every checkpoint and
     /// write-ahead entry fetched.
-    pub fn obsolete_keys(&self, structure: &str) -> Vec<String> {
-        let c = self
-            .checkpoints
-            .keys()
-            .map(|&e| checkpoint_key(structure, e));
-        let w = self.wal.keys().map(|&(e, s)| wal_key(structure, e, s));
-        c.chain(w).collect()
+    pub fn obsolete_keys(&self) -> Vec<String> {
+        self.keys
+            .iter()
+            .filter(|k| !k.ends_with("@state/owner"))
+            .cloned()
+            .collect()
     }
 }
 
@@ -173,6 +238,7 @@ pub fn fetch(session: &zenoh::Session, structure: &str) -> Result<Fetched> {
         let rest = key.strip_prefix(&prefix).unwrap_or(key);
         let bytes = sample.payload().to_bytes();
         read_value(&mut f, rest, &bytes).with_context(|| format!("stored state {key}"))?;
+        f.keys.push(key.to_string());
     }
     // Nothing stored is a structure never tracked, but only if a storage is there to say
     // so: a session cut off from the routers must not take over from an empty state.
@@ -194,18 +260,18 @@ pub fn storage_present(session: &zenoh::Session, structure: &str) -> bool {
 /// Files one stored value by its key below `@state/`.
 fn read_value(f: &mut Fetched, rest: &str, bytes: &[u8]) -> Result<()> {
     let parts: Vec<&str> = rest.split('/').collect();
-    let num = |s: &str| {
-        s.parse::<u64>()
-            .map_err(|_| anyhow!("`{s}` is not a number"))
-    };
     match parts.as_slice() {
         ["owner"] => f.owner = Some(serde_json::from_slice(bytes)?),
-        ["checkpoint", e] => {
-            f.checkpoints
-                .insert(num(e)?, serde_json::from_slice(bytes)?);
+        ["checkpoint", owner] => {
+            let c: Checkpoint<TrackerState> = serde_json::from_slice(bytes)?;
+            let Some(p) = c.fleet.as_ref().filter(|p| p.owner == *owner) else {
+                bail!("the checkpoint has no fleet position of {owner}");
+            };
+            f.checkpoints.insert((p.epoch, p.owner.clone()), c);
         }
-        ["wal", e, s] => {
-            f.wal.insert((num(e)?, num(s)?), WalEntry::decode(bytes)?);
+        ["wal", owner, _slot] => {
+            let (epoch, seq, e) = WalEntry::decode(bytes)?;
+            f.wal.insert((epoch, owner.to_string(), seq), e);
         }
         _ => bail!("not a key of the fleet's state"),
     }
@@ -231,50 +297,103 @@ mod tests {
     #[test]
     fn wal_entries_round_trip_and_refuse_garbage() {
         for t in [0, 1, u64::MAX] {
-            assert_eq!(WalEntry::decode(&entry(t).encode()).unwrap(), entry(t));
+            assert_eq!(
+                WalEntry::decode(&entry(t).encode(7, t)).unwrap(),
+                (7, t, entry(t))
+            );
         }
-        assert!(WalEntry::decode(&[0; 8]).is_err());
-        assert!(WalEntry::decode(&[7; 12]).is_err());
+        assert!(WalEntry::decode(&[0; 24]).is_err());
+        assert!(WalEntry::decode(&[7; 30]).is_err());
+        assert_eq!(
+            wal_key("s", "a", WAL_SLOTS + 3),
+            "boltwatch/s/@state/wal/a/3"
+        );
     }
 
-    /// The tail after a checkpoint of epoch 2 at position 3: epoch 2's entries from 3 on,
-    /// then epoch 3's; epoch 1's and epoch 2's first three are covered.
-    #[test]
-    fn the_tail_starts_at_the_latest_checkpoints_position() {
-        let mut f = Fetched::default();
-        for (e, n) in [(1u64, 4u64), (2, 5), (3, 2)] {
-            for s in 0..n {
-                f.wal.insert((e, s), entry(e * 100 + s));
-            }
-        }
-        assert_eq!(f.tail().1.len(), 11, "no checkpoint: everything");
+    fn checkpoint(epoch: u64, owner: &str, next: u64) -> Checkpoint<TrackerState> {
         let mut c =
             crate::pipeline::Tracker::new(crate::core::model::lab_frame(), Default::default())
                 .unwrap()
                 .checkpoint();
         c.fleet = Some(crate::contract::FleetPosition {
-            epoch: 2,
-            owner: "b".into(),
-            next: 3,
+            epoch,
+            owner: owner.into(),
+            next,
         });
-        f.checkpoints.insert(2, c);
-        let times: Vec<u64> = f.tail().1.iter().map(|e| e.time_ns).collect();
+        c
+    }
+
+    fn record(epoch: u64, owner: &str) -> OwnerRecord {
+        OwnerRecord {
+            structure: "s".into(),
+            epoch,
+            owner: owner.into(),
+            released: false,
+            since: String::new(),
+        }
+    }
+
+    /// Entries of epochs 1 (a), 2 (b) and 3 (a); a checkpoint of epoch 2 at position 3:
+    /// epoch 2's entries from 3 on, then epoch 3's. Entries alone are refused.
+    #[test]
+    fn the_tail_starts_at_the_latest_checkpoints_position() {
+        let mut f = Fetched::default();
+        for (e, o, n) in [(1u64, "a", 4u64), (2, "b", 5), (3, "a", 2)] {
+            for s in 0..n {
+                f.wal.insert((e, o.into(), s), entry(e * 100 + s));
+            }
+        }
+        assert!(f.tail().is_err(), "entries but no checkpoint");
+        f.checkpoints.insert((1, "a".into()), checkpoint(1, "a", 4));
+        assert_eq!(f.tail().unwrap().1.len(), 7, "epochs 2 and 3");
+        f.checkpoints.insert((2, "b".into()), checkpoint(2, "b", 3));
+        let times: Vec<u64> = f.tail().unwrap().1.iter().map(|e| e.time_ns).collect();
         assert_eq!(times, vec![203, 204, 300, 301]);
-        assert_eq!(f.obsolete_keys("s").len(), 1 + 11);
+        assert_eq!(f.latest_epoch(), 3);
+    }
+
+    /// Members a and b both took epoch 2: the record's owner's checkpoint and entries
+    /// count, the other's are ignored, whichever id is greater.
+    #[test]
+    fn of_two_takeovers_of_one_epoch_the_records_owner_counts() {
+        let mut f = Fetched::default();
+        f.checkpoints.insert((1, "c".into()), checkpoint(1, "c", 0));
+        for o in ["a", "b"] {
+            f.checkpoints.insert((2, o.into()), checkpoint(2, o, 0));
+            for s in 0..3 {
+                let t = if o == "a" { 10 + s } else { 20 + s };
+                f.wal.insert((2, o.into(), s), entry(t));
+            }
+        }
+        let tail =
+            |f: &Fetched| -> Vec<u64> { f.tail().unwrap().1.iter().map(|e| e.time_ns).collect() };
+        assert_eq!(tail(&f), vec![20, 21, 22], "no record: the greater id");
+        f.owner = Some(record(2, "a"));
+        assert_eq!(tail(&f), vec![10, 11, 12]);
+        let c = f.tail().unwrap().0.unwrap();
+        assert_eq!(c.fleet.as_ref().unwrap().owner, "a");
     }
 
     #[test]
-    fn records_order_by_epoch_then_owner() {
-        let r = OwnerRecord {
-            structure: "s".into(),
-            epoch: 4,
-            owner: "b".into(),
-            released: false,
-            since: String::new(),
-        };
+    fn records_order_by_epoch_then_owner_and_fence_another_owner_of_the_epoch() {
+        let r = record(4, "b");
         assert!(r.supersedes(3, "z"));
         assert!(r.supersedes(4, "a"));
         assert!(!r.supersedes(4, "b"));
         assert!(!r.supersedes(5, "a"));
+        assert!(r.fences(3, "z"));
+        assert!(r.fences(4, "a") && r.fences(4, "c"));
+        assert!(!r.fences(4, "b"));
+        assert!(!r.fences(5, "a"));
+    }
+
+    #[test]
+    fn a_checkpoint_must_carry_its_writers_position() {
+        let mut f = Fetched::default();
+        let c = serde_json::to_vec(&checkpoint(3, "a", 1)).unwrap();
+        assert!(read_value(&mut f, "checkpoint/a", &c).is_ok());
+        assert!(read_value(&mut f, "checkpoint/b", &c).is_err());
+        assert!(read_value(&mut f, "checkpoint/a/3", &c).is_err());
+        assert_eq!(f.checkpoints.keys().next(), Some(&(3, "a".to_string())));
     }
 }

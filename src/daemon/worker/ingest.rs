@@ -37,12 +37,25 @@ impl Worker {
         let positions = self.write_ahead(&shared, entries)?;
         for (input, (pos, seq)) in batch.into_iter().zip(positions) {
             self.handle_input(&shared, input, pos)?;
-            if let (Some(seq), Some(r)) = (seq, self.remote.as_mut()) {
-                r.handled(seq);
-            }
+            self.remote_handled(seq)?;
             shared.beat();
         }
         self.update_status()
+    }
+
+    /// Write-ahead entry `seq` (if it was put) has been handled; a checkpoint when the
+    /// ring of entries needs one.
+    fn remote_handled(&mut self, seq: Option<u64>) -> Result<()> {
+        let Some(r) = self.remote.as_mut() else {
+            return Ok(());
+        };
+        if let Some(seq) = seq {
+            r.handled(seq);
+        }
+        if r.needs_checkpoint() {
+            self.checkpoint()?;
+        }
+        Ok(())
     }
 
     /// Takes one input off the queue's counts and, a set or an environment reading, gives
@@ -218,9 +231,7 @@ impl Worker {
                 emit(&mut self.out, Output::Modal(set))?;
                 self.handle(received, &bytes)?;
                 self.handled_upto = Some(pos.after());
-                if let (Some(seq), Some(r)) = (seq, self.remote.as_mut()) {
-                    r.handled(seq);
-                }
+                self.remote_handled(seq)?;
             }
             FrontEvent::Refused(rej) => {
                 let head = &payload[..payload.len().min(REJECTED_PAYLOAD_LIMIT)];

@@ -3,17 +3,22 @@
 //! handled, each checkpoint is put with the position after the last entry handled, and then
 //! the entries and older state it makes obsolete are deleted. Every write first asks the
 //! lane's [`Fence`]: a daemon whose epoch moved on writes nothing.
+//!
+//! The entries go round a ring of [`WAL_SLOTS`] keys; a checkpoint is due
+//! ([`Remote::needs_checkpoint`]) once half the ring is handled and not yet covered, so a
+//! put never reaches an entry a checkpoint does not cover (a batch is at most a quarter of
+//! the ring).
 
 use std::collections::VecDeque;
 use std::sync::Arc;
 
-use anyhow::Result;
+use anyhow::{Result, bail};
 use zenoh::Wait;
 use zenoh::qos::CongestionControl;
 
 use crate::contract::{Checkpoint, FleetPosition, to_wire};
 use crate::daemon::fleet::fence::Fence;
-use crate::daemon::fleet::state::{WalEntry, checkpoint_key, wal_key};
+use crate::daemon::fleet::state::{WAL_SLOTS, WalEntry, checkpoint_key, wal_key};
 use crate::io::zenoh::zerr;
 use crate::pipeline::TrackerState;
 
@@ -58,7 +63,17 @@ impl Remote {
                 continue;
             }
             let seq = self.next_seq;
-            self.put(&wal_key(&self.fence.structure, self.fence.epoch, seq), e.encode())?;
+            if self.own.len() as u64 >= WAL_SLOTS {
+                bail!(
+                    "the write-ahead ring of {} is full ({WAL_SLOTS} entries not covered by a checkpoint)",
+                    self.fence.structure
+                );
+            }
+            let f = &self.fence;
+            self.put(
+                &wal_key(&f.structure, &f.owner, seq),
+                e.encode(f.epoch, seq),
+            )?;
             self.own.push_back(seq);
             self.next_seq += 1;
             seqs.push(Some(seq));
@@ -69,6 +84,12 @@ impl Remote {
     /// Entry `seq` has been handled: a checkpoint from now on covers it.
     pub fn handled(&mut self, seq: u64) {
         self.handled_next = self.handled_next.max(seq + 1);
+    }
+
+    /// Whether half the ring is handled and not yet covered by a checkpoint.
+    pub fn needs_checkpoint(&self) -> bool {
+        let covered = self.own.front().copied().unwrap_or(self.handled_next);
+        self.handled_next.saturating_sub(covered) >= WAL_SLOTS / 2
     }
 
     /// The tail fetched at the takeover has been handled again: the next checkpoint covers
@@ -83,22 +104,28 @@ impl Remote {
         if !self.fence.allows() {
             return Ok(());
         }
-        let (structure, epoch) = (self.fence.structure.clone(), self.fence.epoch);
+        let f = self.fence.clone();
         c.fleet = Some(FleetPosition {
-            epoch,
-            owner: self.fence.owner.clone(),
+            epoch: f.epoch,
+            owner: f.owner.clone(),
             next: self.handled_next,
         });
-        let key = checkpoint_key(&structure, epoch);
+        let key = checkpoint_key(&f.structure, &f.owner);
         self.put(&key, to_wire(&c))?;
         let mut obsolete = Vec::new();
         if self.resumed {
-            obsolete.extend(std::mem::take(&mut self.fetched).into_iter().filter(|k| *k != key));
+            // Not this member's own keys reused in this epoch since the takeover.
+            let mine: std::collections::HashSet<String> = (0..self.next_seq.min(WAL_SLOTS))
+                .map(|s| wal_key(&f.structure, &f.owner, s))
+                .chain([key])
+                .collect();
+            let fetched = std::mem::take(&mut self.fetched);
+            obsolete.extend(fetched.into_iter().filter(|k| !mine.contains(k)));
         }
         while let Some(&seq) = self.own.front()
             && seq < self.handled_next
         {
-            obsolete.push(wal_key(&structure, epoch, seq));
+            obsolete.push(wal_key(&f.structure, &f.owner, seq));
             self.own.pop_front();
         }
         for k in obsolete {

@@ -15,6 +15,7 @@ use zenoh::Wait;
 
 use super::{bin, client, free_port, status_of, wait_status_of};
 use crate::suite::tracker::tmp_dir;
+use boltwatch::daemon::fleet::rendezvous;
 use boltwatch::io::mcap::read_all;
 
 /// No cross-checks (their timing is the wall clock's, live): every output compared is a
@@ -411,8 +412,9 @@ fn batch_with_a_kill(
     z: &zenoh::Session,
     daemons: &mut BTreeMap<String, Proc>,
 ) -> (String, Vec<String>) {
-    let owners = site.wait_owners(z, Duration::from_secs(60), "12 owners", |_, d| {
-        daemons.contains_key(d)
+    // Settled: each structure with the member rendezvous hashing names among the three.
+    let owners = site.wait_owners(z, Duration::from_secs(60), "12 owners", |s, d| {
+        rendezvous::owner(daemons.keys().map(String::as_str), s) == Some(d)
     });
     let victim = busiest(&owners);
     let theirs: Vec<String> = owners
