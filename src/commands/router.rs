@@ -4,8 +4,9 @@
 //! storage (the storage manager's replication: digests compared every interval, missing
 //! entries fetched), so the state outlives any one box.
 //!
-//! The router is configured by a Zenoh JSON5 file (`--config`, as `zenohd` is) or by
-//! `--listen`/`--connect`. Without a `plugins.storage_manager` section the state storage
+//! The router is configured by Zenoh JSON5 files (`--config`, as `zenohd` is; several are
+//! merged in order: objects key by key, arrays appended, so a fleet's additions sit in
+//! their own file beside the site's router configuration) or by `--listen`/`--connect`. Without a `plugins.storage_manager` section the state storage
 //! below ([`STATE_STORAGE`]) is added; with one, that section is used as written. The
 //! replication settings must be identical on every router of a fleet (the storage manager
 //! pairs replicas by a hash of them).
@@ -39,8 +40,10 @@ pub const STATE_STORAGE: &str = r#"{
 #[derive(Debug, clap::Args)]
 pub struct RouterArgs {
     /// A Zenoh JSON5 configuration (mode router is set; listen and connect below are added).
+    /// Repeatable: later files are merged into earlier ones (objects key by key, arrays
+    /// appended).
     #[arg(long)]
-    pub config: Option<PathBuf>,
+    pub config: Vec<PathBuf>,
     /// Endpoints to listen on, e.g. tcp/127.0.0.1:7450 (repeatable).
     #[arg(long)]
     pub listen: Vec<String>,
@@ -69,10 +72,11 @@ pub fn run(args: &RouterArgs) -> Result<()> {
 
 /// The router's Zenoh configuration (module docs).
 pub fn router_config(args: &RouterArgs) -> Result<zenoh::Config> {
-    let mut cfg = match &args.config {
-        Some(f) => zenoh::Config::from_file(f)
+    let mut cfg = match args.config.as_slice() {
+        [] => zenoh::Config::default(),
+        [f] => zenoh::Config::from_file(f)
             .map_err(zerr(format!("--config: cannot load {}", f.display())))?,
-        None => zenoh::Config::default(),
+        files => merged_config(files)?,
     };
     let mut set = |key: &str, value: String| {
         cfg.insert_json5(key, &value)
@@ -90,7 +94,7 @@ pub fn router_config(args: &RouterArgs) -> Result<zenoh::Config> {
     if !args.connect.is_empty() {
         set("connect/endpoints", serde_json::to_string(&args.connect)?)?;
     }
-    if args.config.is_none() {
+    if args.config.is_empty() {
         set("scouting/multicast/enabled", "false".into())?;
     }
     if cfg.get_json("plugins/storage_manager").is_err() {
@@ -101,6 +105,40 @@ pub fn router_config(args: &RouterArgs) -> Result<zenoh::Config> {
         bail!("the router listens nowhere: give --listen or listen.endpoints in --config");
     }
     Ok(cfg)
+}
+
+/// The Zenoh configuration of several JSON5 files merged in order ([`merge`]).
+fn merged_config(files: &[PathBuf]) -> Result<zenoh::Config> {
+    let mut all = serde_json::Value::Object(Default::default());
+    for f in files {
+        let text = std::fs::read_to_string(f)
+            .with_context(|| format!("--config: cannot read {}", f.display()))?;
+        let v: serde_json::Value = json5::from_str(&text)
+            .with_context(|| format!("--config: {} is not valid JSON5", f.display()))?;
+        merge(&mut all, v);
+    }
+    zenoh::Config::from_json5(&all.to_string()).map_err(zerr(format!(
+        "--config: the merged configuration of {files:?}"
+    )))
+}
+
+/// Merges `over` into `base`: objects key by key, arrays appended, anything else replaced.
+pub fn merge(base: &mut serde_json::Value, over: serde_json::Value) {
+    use serde_json::Value;
+    match (base, over) {
+        (Value::Object(b), Value::Object(o)) => {
+            for (k, v) in o {
+                match b.get_mut(&k) {
+                    Some(slot) => merge(slot, v),
+                    None => {
+                        b.insert(k, v);
+                    }
+                }
+            }
+        }
+        (Value::Array(b), Value::Array(o)) => b.extend(o),
+        (b, o) => *b = o,
+    }
 }
 
 /// Starts the runtime with the storage manager, serves until SIGINT or SIGTERM, closes.
@@ -128,4 +166,23 @@ async fn serve(config: zenoh::Config) -> Result<()> {
         .await
         .map_err(zerr("cannot close the router"))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::merge;
+    use serde_json::json;
+
+    #[test]
+    fn configurations_merge_objects_by_key_and_append_arrays() {
+        let mut base = json!({"mode": "router", "acl": {"enabled": true, "rules": [1, 2]}});
+        merge(
+            &mut base,
+            json!({"mode": "peer", "acl": {"rules": [3]}, "connect": ["a"]}),
+        );
+        assert_eq!(
+            base,
+            json!({"mode": "peer", "acl": {"enabled": true, "rules": [1, 2, 3]}, "connect": ["a"]})
+        );
+    }
 }

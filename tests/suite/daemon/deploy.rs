@@ -84,7 +84,7 @@ fn python_zenoh_client_publishes_and_receives() {
 
 /// A file of `deploy/` with its `/etc/boltwatch/` paths moved to `dir` and the `pairs`
 /// replaced (each must occur).
-fn localize(dir: &Path, file: &str, pairs: &[(&str, &str)]) -> String {
+pub(super) fn localize(dir: &Path, file: &str, pairs: &[(&str, &str)]) -> String {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy");
     let mut text = std::fs::read_to_string(root.join(file)).unwrap();
     let dir = format!("{}/", dir.display());
@@ -99,7 +99,7 @@ fn localize(dir: &Path, file: &str, pairs: &[(&str, &str)]) -> String {
 }
 
 /// A test CA and a server certificate for 127.0.0.1, made with the `openssl` command.
-fn make_certs(dir: &Path) {
+pub(super) fn make_certs(dir: &Path) {
     let tls = dir.join("tls");
     std::fs::create_dir_all(&tls).unwrap();
     std::fs::write(

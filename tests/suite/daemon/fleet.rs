@@ -20,13 +20,14 @@ use boltwatch::io::mcap::read_all;
 
 /// No cross-checks (their timing is the wall clock's, live): every output compared is a
 /// set's own.
-const NO_CROSSCHECK: &str = "[tracker]\ncrosscheck_every_sets = 100000\ncrosscheck_every_s = 0.0\n";
+pub(super) const NO_CROSSCHECK: &str =
+    "[tracker]\ncrosscheck_every_sets = 100000\ncrosscheck_every_s = 0.0\n";
 
 /// A child process killed when dropped.
-struct Proc(Child, PathBuf);
+pub(super) struct Proc(Child, PathBuf);
 
 impl Proc {
-    fn spawn(mut c: std::process::Command, log: PathBuf) -> Self {
+    pub(super) fn spawn(mut c: std::process::Command, log: PathBuf) -> Self {
         let f = std::fs::File::create(&log).unwrap();
         c.stdout(Stdio::null()).stderr(f);
         Proc(c.spawn().unwrap(), log)
@@ -46,7 +47,7 @@ impl Proc {
         let _ = self.0.wait();
     }
 
-    fn log(&self) -> String {
+    pub(super) fn log(&self) -> String {
         std::fs::read_to_string(&self.1).unwrap_or_default()
     }
 }
@@ -61,16 +62,16 @@ impl Drop for Proc {
 }
 
 /// The test's site: structure models and recordings, routers, daemons.
-struct Site {
-    dir: PathBuf,
-    structures: Vec<String>,
-    routers: Vec<String>,
+pub(super) struct Site {
+    pub(super) dir: PathBuf,
+    pub(super) structures: Vec<String>,
+    pub(super) routers: Vec<String>,
 }
 
 impl Site {
     /// `n` copies of the lab frame named `frame-01`…, each with a healthy recording of
     /// `sets` sets (seed = its number).
-    fn new(name: &str, n: usize, sets: usize, routers: usize) -> Self {
+    pub(super) fn new(name: &str, n: usize, sets: usize, routers: usize) -> Self {
         let dir = tmp_dir(name);
         let lab = std::fs::read_to_string(
             Path::new(env!("CARGO_MANIFEST_DIR")).join("config/models/lab-frame.toml"),
@@ -158,7 +159,7 @@ impl Site {
     }
 
     /// Each structure's owner and epoch, from its status (`None`: no answer).
-    fn owners(&self, z: &zenoh::Session) -> BTreeMap<String, Option<(String, u64)>> {
+    pub(super) fn owners(&self, z: &zenoh::Session) -> BTreeMap<String, Option<(String, u64)>> {
         self.structures
             .iter()
             .map(|s| {

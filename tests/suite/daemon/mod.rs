@@ -368,6 +368,7 @@ pub fn replayed_with(
 mod deploy;
 mod field;
 mod fleet;
+mod fleet_acl;
 mod tracking;
 
 /// Peak resident set size of a running process (KiB).
