@@ -13,6 +13,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+use boltwatch::daemon::fleet::rendezvous;
 use boltwatch::io::mcap::{ChannelSpec, McapWriter, read_all};
 use serde_json::Value;
 use zenoh::Wait;
@@ -278,10 +279,28 @@ fn main() {
         daemons.insert(id.to_string(), child.id());
         procs.0.push(child);
     }
-    // Ownership settles: every structure has a record naming a member.
-    let deadline = Instant::now() + Duration::from_secs(120);
-    while stored_owners(&z).len() < n {
-        assert!(Instant::now() < deadline, "ownership did not settle");
+    // Ownership settles: every structure's record names the member rendezvous hashing
+    // gives it among the three.
+    let settle = Instant::now();
+    let deadline = settle + Duration::from_secs(120);
+    loop {
+        let owners = stored_owners(&z);
+        let settled = owners.len() == n
+            && owners
+                .iter()
+                .all(|(s, o)| rendezvous::owner(ids, s) == Some(o.as_str()));
+        if settled {
+            let mut split: BTreeMap<&str, usize> = BTreeMap::new();
+            for o in owners.values() {
+                *split.entry(o).or_default() += 1;
+            }
+            println!("ownership settled in {:?}: {split:?}", settle.elapsed());
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "ownership did not settle: {owners:?}"
+        );
         std::thread::sleep(Duration::from_millis(500));
     }
     heard.lock().unwrap().owners = stored_owners(&z)
