@@ -297,6 +297,11 @@ impl Settings {
     fn validate_fleet(&self) -> Result<()> {
         let f = &self.fleet;
         if !f.enabled() {
+            if self.daemon.state == StateStore::Zenoh {
+                bail!(
+                    "configuration key daemon.state: \"zenoh\" keeps the state in a fleet's storages: set fleet.group (or daemon.state = \"local\")"
+                );
+            }
             return Ok(());
         }
         for (key, v) in [("fleet.group", &f.group), ("fleet.id", &f.id)] {
@@ -530,5 +535,31 @@ mod tests {
         )
         .unwrap();
         assert_eq!(s.daemon.state_dir, Path::new("/var/lib/bw"));
+    }
+
+    /// A fleet needs its state in Zenoh, and state in Zenoh needs a fleet; ids are single
+    /// key-expression chunks. Each error names its key.
+    #[test]
+    fn fleet_settings_are_checked_together() {
+        let load = |pairs: &[(&str, &str)]| Settings::load_with_env(None, env(pairs));
+        let group = ("BOLTWATCH__FLEET__GROUP", "g");
+        let id = ("BOLTWATCH__FLEET__ID", "a");
+        let zenoh = ("BOLTWATCH__DAEMON__STATE", "zenoh");
+        assert!(load(&[group, id, zenoh]).is_ok());
+        for (pairs, key) in [
+            (vec![group, id], "daemon.state"),
+            (vec![zenoh], "daemon.state"),
+            (
+                vec![group, ("BOLTWATCH__FLEET__ID", "a/b"), zenoh],
+                "fleet.id",
+            ),
+            (
+                vec![("BOLTWATCH__FLEET__GROUP", "@g"), id, zenoh],
+                "fleet.group",
+            ),
+        ] {
+            let e = format!("{:#}", load(&pairs).unwrap_err());
+            assert!(e.contains(key), "{pairs:?}: {e}");
+        }
     }
 }

@@ -73,6 +73,10 @@ impl Lane {
         };
         let recovered = recover(settings, s, session, state)?;
         let shared = recovered.shared.clone();
+        if let Some(f) = &fence {
+            let beat = shared.clone();
+            f.on_wait(move || beat.beat());
+        }
         let (tx, thread) = start(&s.name, recovered, settings.daemon.queue, done)?;
         let intake = Intake {
             tx: tx.clone(),

@@ -12,7 +12,7 @@
 //! finds its confirmation stale and reads the record before anything else goes out.
 
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
 use anyhow::{Result, anyhow};
@@ -36,6 +36,9 @@ pub struct Fence {
     state: Mutex<(Instant, bool)>,
     /// The lane is being closed: stop waiting for a storage that does not answer.
     closing: AtomicBool,
+    /// Called while waiting for the storages (the lane's heartbeat: a lane that holds its
+    /// outputs is alive, and the watchdog must not kill the daemon for it).
+    waiting: OnceLock<Box<dyn Fn() + Send + Sync>>,
 }
 
 impl Fence {
@@ -48,7 +51,13 @@ impl Fence {
             epoch,
             state: Mutex::new((Instant::now(), false)),
             closing: AtomicBool::new(false),
+            waiting: OnceLock::new(),
         })
+    }
+
+    /// Sets what to call while [`Fence::allows`] waits for the storages.
+    pub fn on_wait(&self, f: impl Fn() + Send + Sync + 'static) {
+        let _ = self.waiting.set(Box::new(f));
     }
 
     pub fn is_fenced(&self) -> bool {
@@ -85,6 +94,7 @@ impl Fence {
     /// Whether an output or a state write may go out now (module docs). Waits while the
     /// storages cannot be read, unless the lane is closing.
     pub fn allows(&self) -> bool {
+        let mut warned = false;
         loop {
             {
                 let s = self.lock();
@@ -110,10 +120,16 @@ impl Fence {
                     if self.closing.load(Ordering::Relaxed) {
                         return false;
                     }
-                    tracing::warn!(
-                        structure = self.structure,
-                        "cannot confirm the ownership epoch ({e:#}); holding outputs until the state storage answers"
-                    );
+                    if !warned {
+                        tracing::warn!(
+                            structure = self.structure,
+                            "cannot confirm the ownership epoch ({e:#}); holding outputs until the state storage answers"
+                        );
+                        warned = true;
+                    }
+                    if let Some(beat) = self.waiting.get() {
+                        beat();
+                    }
                     std::thread::sleep(RETRY);
                 }
             }

@@ -21,21 +21,21 @@ impl Controller {
     /// from the storages, then a lane resumed from the stored checkpoint and write-ahead
     /// tail.
     pub(super) async fn take_over(&mut self, s: &StructureSettings) -> Result<()> {
-        let session = self.session.clone();
-        let name = s.name.clone();
+        // While a live owner has not handed it back, only its record is read.
+        let (session, name) = (self.session.clone(), s.name.clone());
+        let record = tokio::task::spawn_blocking(move || read_owner(&session, &name)).await;
+        if let Ok(Ok(r)) = &record
+            && self.waits_for(r)
+        {
+            return Ok(());
+        }
+        let (session, name) = (self.session.clone(), s.name.clone());
         let fetched = tokio::task::spawn_blocking(move || state::fetch(&session, &name))
             .await
             .map_err(|e| anyhow!("fetching the state of {}: {e}", s.name))??;
         if let Some(r) = &fetched.owner
-            && !r.released
-            && r.owner != self.me
-            && self.members.contains(&r.owner)
+            && self.waits_for(r)
         {
-            tracing::debug!(
-                structure = s.name,
-                owner = r.owner,
-                "waiting for the owner to hand the structure back"
-            );
             return Ok(());
         }
         // A state that cannot be resumed is refused before it costs an epoch.
@@ -72,6 +72,20 @@ impl Controller {
         self.lanes.insert(s.name.clone(), lane);
         tracing::info!(structure = s.name, epoch, "took the structure over");
         Ok(())
+    }
+
+    /// Whether `r` names a live member, not this one, that has not handed the structure
+    /// back: then a takeover waits.
+    fn waits_for(&self, r: &OwnerRecord) -> bool {
+        let waits = !r.released && r.owner != self.me && self.members.contains(&r.owner);
+        if waits {
+            tracing::debug!(
+                structure = r.structure,
+                owner = r.owner,
+                "waiting for the owner to hand the structure back"
+            );
+        }
+        waits
     }
 
     /// Hands `name` back: its lane closed (every queued set handled, the checkpoint

@@ -195,6 +195,15 @@ impl Fetched {
         Ok((checkpoint.map(|(_, c)| c), tail.into_values().collect()))
     }
 
+    /// Files the stored value of `key` (a key of `structure`'s state).
+    pub fn add(&mut self, structure: &str, key: &str, bytes: &[u8]) -> Result<()> {
+        let prefix = format!("boltwatch/{structure}/@state/");
+        let rest = key.strip_prefix(&prefix).unwrap_or(key);
+        read_value(self, rest, bytes).with_context(|| format!("stored state {key}"))?;
+        self.keys.push(key.to_string());
+        Ok(())
+    }
+
     /// The highest epoch anything stored was written in (0: nothing stored): a takeover
     /// takes the next, even if the record itself was lost or overwritten.
     pub fn latest_epoch(&self) -> u64 {
@@ -234,11 +243,11 @@ pub fn fetch(session: &zenoh::Session, structure: &str) -> Result<Fetched> {
         let sample = reply
             .result()
             .map_err(|e| anyhow!("the state storage of {structure} answered an error: {e:?}"))?;
-        let key = sample.key_expr().as_str();
-        let rest = key.strip_prefix(&prefix).unwrap_or(key);
-        let bytes = sample.payload().to_bytes();
-        read_value(&mut f, rest, &bytes).with_context(|| format!("stored state {key}"))?;
-        f.keys.push(key.to_string());
+        f.add(
+            structure,
+            sample.key_expr().as_str(),
+            &sample.payload().to_bytes(),
+        )?;
     }
     // Nothing stored is a structure never tracked, but only if a storage is there to say
     // so: a session cut off from the routers must not take over from an empty state.

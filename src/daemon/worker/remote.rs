@@ -146,3 +146,109 @@ impl Remote {
             .map_err(zerr(format!("cannot put {key}")))
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use std::collections::BTreeMap;
+    use std::sync::{Arc, Mutex};
+
+    use super::*;
+    use crate::daemon::fleet::state::Fetched;
+    use zenoh::sample::SampleKind;
+
+    /// A session on its own, with a "storage" of its own puts and deletes (what the
+    /// routers' storages would hold).
+    /// What the storages would hold: key → value.
+    type Store = Arc<Mutex<BTreeMap<String, Vec<u8>>>>;
+
+    fn session_with_store() -> (zenoh::Session, Store) {
+        let mut c = zenoh::Config::default();
+        c.insert_json5("mode", "\"peer\"").unwrap();
+        c.insert_json5("listen/endpoints", "[]").unwrap();
+        c.insert_json5("scouting/multicast/enabled", "false")
+            .unwrap();
+        let z = zenoh::open(c).wait().unwrap();
+        let store = Arc::new(Mutex::new(BTreeMap::new()));
+        let s = store.clone();
+        z.declare_subscriber("boltwatch/s/@state/**")
+            .callback(move |x| {
+                let k = x.key_expr().to_string();
+                let mut s = s.lock().unwrap();
+                match x.kind() {
+                    SampleKind::Put => s.insert(k, x.payload().to_bytes().to_vec()),
+                    SampleKind::Delete => s.remove(&k),
+                };
+            })
+            .background()
+            .wait()
+            .unwrap();
+        (z, store)
+    }
+
+    fn stored(store: &Mutex<BTreeMap<String, Vec<u8>>>) -> Fetched {
+        let mut f = Fetched::default();
+        for (k, v) in store.lock().unwrap().iter() {
+            f.add("s", k, v).unwrap();
+        }
+        f
+    }
+
+    fn entry(i: u64) -> WalEntry {
+        WalEntry {
+            suffix: "modal",
+            time_ns: i,
+            bytes: vec![i as u8],
+        }
+    }
+
+    /// A batch of 3 is put, and a checkpoint falls due after its first set: the
+    /// checkpoint covers that set only, and the two others stay the tail a new owner
+    /// handles.
+    #[test]
+    fn a_checkpoint_inside_a_batch_covers_only_what_was_handled() {
+        let (z, store) = session_with_store();
+        let fence = Fence::new(z.clone(), "s", "a", 4);
+        let mut r = Remote::new(z, fence, Vec::new());
+        r.resumed();
+        let seqs = r.put_entries(&[entry(0), entry(1), entry(2)]).unwrap();
+        assert_eq!(seqs, vec![Some(0), Some(1), Some(2)]);
+        r.handled(0);
+        let c = crate::pipeline::Tracker::new(crate::core::model::lab_frame(), Default::default())
+            .unwrap()
+            .checkpoint();
+        r.put_checkpoint(c).unwrap();
+        let f = stored(&store);
+        let (c, tail) = f.tail().unwrap();
+        assert_eq!(c.unwrap().fleet.as_ref().unwrap().next, 1);
+        let times: Vec<u64> = tail.iter().map(|e| e.time_ns).collect();
+        assert_eq!(times, vec![1, 2]);
+        assert_eq!(f.wal.len(), 2, "the covered entry is deleted");
+    }
+
+    /// Half the ring handled and uncovered asks for a checkpoint; after it, the ring
+    /// goes round without a put reaching an uncovered entry.
+    #[test]
+    fn the_ring_asks_for_a_checkpoint_at_half_full() {
+        let (z, store) = session_with_store();
+        let mut r = Remote::new(z.clone(), Fence::new(z, "s", "a", 1), Vec::new());
+        let c = || {
+            crate::pipeline::Tracker::new(crate::core::model::lab_frame(), Default::default())
+                .unwrap()
+                .checkpoint()
+        };
+        let mut checkpoints = 0;
+        for i in 0..3 * WAL_SLOTS {
+            let seq = r.put_entries(&[entry(i)]).unwrap()[0].unwrap();
+            r.handled(seq);
+            assert!(r.own.len() as u64 <= WAL_SLOTS / 2);
+            if r.needs_checkpoint() {
+                r.put_checkpoint(c()).unwrap();
+                checkpoints += 1;
+            }
+        }
+        assert_eq!(checkpoints, 6);
+        let f = stored(&store);
+        assert!(f.tail().unwrap().1.is_empty());
+        assert!(store.lock().unwrap().len() as u64 <= 1 + WAL_SLOTS);
+    }
+}
