@@ -51,6 +51,16 @@ impl Drop for Procs {
     }
 }
 
+/// A process's resident memory (MB).
+fn rss_mb(pid: u32) -> f64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
+        .map_or(0.0, |kb| kb / 1e3)
+}
+
 /// CPU seconds (user + system) a process has used.
 fn cpu_s(pid: u32) -> f64 {
     let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
@@ -316,6 +326,8 @@ fn main() {
         let h = heard.lock().unwrap();
         (h.state_puts, h.state_bytes)
     };
+    let router_pids: Vec<u32> = procs.0[..2].iter().map(Child::id).collect();
+    let rss0: Vec<f64> = router_pids.iter().map(|p| rss_mb(*p)).collect();
     let start = Instant::now();
     let st = bin()
         .arg("publish")
@@ -335,6 +347,12 @@ fn main() {
     let wall = start.elapsed().as_secs_f64();
     std::thread::sleep(Duration::from_secs(2));
     report_load(&heard, &daemons, &cpu0, (puts0, bytes0), wall, n * seconds);
+    for (i, (pid, before)) in router_pids.iter().zip(rss0).enumerate() {
+        println!(
+            "router {i}: resident {before:.0} MB before the load, {:.0} MB after",
+            rss_mb(*pid)
+        );
+    }
     report_takeover(&heard, &daemons);
     drop(procs);
 }
