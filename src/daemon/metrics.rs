@@ -3,6 +3,8 @@
 //! `[metrics] listen`, served by axum. A `prometheus-client` collector reads the shared state
 //! at scrape time and encodes it in the Prometheus text format (version 0.0.4).
 
+mod state;
+
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -117,6 +119,8 @@ pub struct Shared {
     pub started: chrono::DateTime<chrono::Utc>,
     /// Sets received from Zenoh (queued or dropped).
     pub received: AtomicU64,
+    /// When the last set was received (Unix ms; 0: none yet).
+    pub last_received_ms: AtomicU64,
     /// Sets dropped at a full queue.
     pub dropped: AtomicU64,
     /// Sets waiting in the queue.
@@ -153,6 +157,7 @@ impl Shared {
             heartbeat: AtomicU64::new(0),
             started: chrono::Utc::now(),
             received: AtomicU64::new(0),
+            last_received_ms: AtomicU64::new(0),
             dropped: AtomicU64::new(0),
             depth: AtomicU64::new(0),
             queued_bytes: AtomicU64::new(0),
@@ -250,6 +255,7 @@ impl Collector for Structures {
         encode_queue_depth(&mut enc, &all)?;
         encode_latency(&mut enc, &all)?;
         encode_theta(&mut enc, &all)?;
+        state::encode(&mut enc, &all)?;
         encode_ownership(&mut enc, &all)
     }
 }

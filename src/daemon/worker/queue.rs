@@ -61,6 +61,11 @@ fn enqueue_as(
 ) {
     shared.received.fetch_add(1, Ordering::Relaxed);
     let received = Utc::now();
+    if kind != Kind::Environment {
+        shared
+            .last_received_ms
+            .store(received.timestamp_millis().max(0) as u64, Ordering::Relaxed);
+    }
     let size = payload.len();
     let deadline = Instant::now() + QUEUE_WAIT;
     let input = if size > shared.max_payload {

@@ -91,6 +91,7 @@ fn daemon_over_zenoh_gives_what_replay_gives() {
     );
     assert!(m.contains("boltwatch_update_seconds_count{structure=\"lab-frame\"} 1200"));
     assert!(m.contains("boltwatch_theta{structure=\"lab-frame\",parameter=\"C1L@J1L\"}"));
+    assert_structure_metrics(&m, &st);
     drop(outputs);
     drop(s);
 
@@ -104,6 +105,48 @@ fn daemon_over_zenoh_gives_what_replay_gives() {
         payloads(&read_all(&logs[0]).unwrap(), "stiffness"),
         want("stiffness")
     );
+}
+
+/// The value of the metric line `name{labels}`.
+fn metric(m: &str, name_labels: &str) -> Option<f64> {
+    m.lines()
+        .find_map(|l| l.strip_prefix(name_labels)?.strip_prefix(' '))
+        .and_then(|v| v.trim().parse().ok())
+}
+
+/// The structure's state in the metrics equals the status's last estimate and alerts:
+/// C1L@J1L in alarm at its filtered level and loss, a healthy connection at level 0.
+fn assert_structure_metrics(m: &str, st: &Value) {
+    let p = |name: &str| {
+        st["last_estimate"]["parameters"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|p| p["name"] == name)
+            .unwrap()
+            .clone()
+    };
+    let labels = |c: &str| format!("{{structure=\"lab-frame\",parameter=\"{c}\"}}");
+    let c1 = p("C1L@J1L");
+    let get = |name: &str, c: &str| {
+        metric(m, &format!("{name}{}", labels(c))).unwrap_or_else(|| panic!("{name} {c}: {m}"))
+    };
+    assert_eq!(get("boltwatch_alert_level", "C1L@J1L"), 2.0);
+    assert_eq!(get("boltwatch_alert_level", "C2L@J2L"), 0.0);
+    let close = |a: f64, b: &Value| (a - b.as_f64().unwrap()).abs() <= 1e-12 * a.abs().max(1.0);
+    assert!(close(
+        get("boltwatch_theta_filtered", "C1L@J1L"),
+        &c1["filtered"]["level"]
+    ));
+    assert!(close(get("boltwatch_theta_std", "C1L@J1L"), &c1["std"]));
+    let loss = get("boltwatch_loss", "C1L@J1L");
+    // Against the expectation under the set's temperature (the default normalises).
+    assert!(close(loss, &c1["normalised"]["loss"]), "{loss} {c1:#}");
+    assert!(loss > 0.25, "an alarm is a loss over 25 %: {loss}");
+    let eps = metric(m, "boltwatch_epsilon{structure=\"lab-frame\"}").unwrap();
+    assert!(close(eps, &st["last_estimate"]["epsilon"]));
+    let age = metric(m, "boltwatch_last_set_age_seconds{structure=\"lab-frame\"}").unwrap();
+    assert!((0.0..600.0).contains(&age), "{age}");
 }
 
 /// A site whose thermometer is not in the box that identifies the modes: thirty days of
