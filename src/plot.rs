@@ -1,6 +1,7 @@
 //! Line charts drawn with [`plotters`]: panels of series on linear or log axes, with ticks,
 //! labels, legends, vertical and horizontal reference lines and shaded bands, laid out in a
-//! grid and written as SVG ([`figure_svg`]) or PNG ([`figure_png`]).
+//! grid and written as SVG ([`figure_svg`]) or PNG ([`figure_png`]). A figure of many panels
+//! that share their series can carry one legend above them all ([`Legend::Once`]).
 //!
 //! Text is measured (and in PNGs drawn) with DejaVu Sans, bundled by the `dejavu` crate and
 //! registered with plotters as `sans-serif`, so no system font is needed. SVG text still names
@@ -14,10 +15,21 @@ use anyhow::Context;
 use plotters::coord::Shift;
 use plotters::coord::cartesian::Cartesian2d;
 use plotters::coord::ranged1d::{AsRangedCoord, ValueFormatter};
-use plotters::element::DashedPathElement;
 use plotters::prelude::*;
 use plotters::style::register_font;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
+
+mod legend;
+use legend::{Key, draw_legend, figure_legend, legend_height};
+
+/// Where a figure's legends go.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Legend {
+    /// Beside each panel, right of its plot.
+    PerPanel,
+    /// Once, above the panels: every label of every panel, each once.
+    Once,
+}
 
 /// Axis scale.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -125,12 +137,18 @@ impl Panel {
     }
 }
 
-/// An SVG document with `panels` laid out in `columns` columns.
+/// An SVG document with `panels` laid out in `columns` columns, a legend beside each.
 pub fn figure_svg(panels: &[Panel], columns: usize) -> String {
+    figure_svg_with(panels, columns, Legend::PerPanel)
+}
+
+/// An SVG document with `panels` laid out in `columns` columns, legends as `legend` says.
+pub fn figure_svg_with(panels: &[Panel], columns: usize, legend: Legend) -> String {
     let mut svg = String::new();
     {
-        let root = SVGBackend::with_string(&mut svg, figure_size(panels, columns));
-        draw_figure(&root.into_drawing_area(), panels, columns)
+        let size = figure_size(panels, columns, legend);
+        let root = SVGBackend::with_string(&mut svg, size);
+        draw_figure(&root.into_drawing_area(), panels, columns, legend)
             .expect("drawing into an in-memory SVG with the bundled font does not fail");
     }
     inline_text(&svg)
@@ -138,9 +156,14 @@ pub fn figure_svg(panels: &[Panel], columns: usize) -> String {
 
 /// A PNG image of `panels` laid out in `columns` columns, written to `path` (which must end
 /// in `.png`: the encoder goes by the extension).
-pub fn figure_png(panels: &[Panel], columns: usize, path: &Path) -> anyhow::Result<()> {
-    let root = BitMapBackend::new(path, figure_size(panels, columns));
-    draw_figure(&root.into_drawing_area(), panels, columns)
+pub fn figure_png(
+    panels: &[Panel],
+    columns: usize,
+    legend: Legend,
+    path: &Path,
+) -> anyhow::Result<()> {
+    let root = BitMapBackend::new(path, figure_size(panels, columns, legend));
+    draw_figure(&root.into_drawing_area(), panels, columns, legend)
         .with_context(|| format!("cannot write {}", path.display()))
 }
 
@@ -166,36 +189,61 @@ const H: u32 = 380;
 const LEFT: u32 = 72;
 const BOTTOM: u32 = 44;
 const RIGHT: u32 = 150;
+/// The room right of the plot when the legend is above the figure.
+const RIGHT_NARROW: u32 = 24;
 const FONT: &str = "sans-serif";
 /// Font sizes in plotters' units, 1.24 × the CSS pixels they come out as in SVG: 11, 12, 14.
 const SMALL: u32 = 14;
 const NORMAL: u32 = 15;
 const TITLE: u32 = 17;
 
-fn figure_size(panels: &[Panel], columns: usize) -> (u32, u32) {
+fn figure_size(panels: &[Panel], columns: usize, legend: Legend) -> (u32, u32) {
     let columns = columns.max(1);
     let rows = panels.len().div_ceil(columns).max(1);
-    (W * columns as u32, H * rows as u32)
+    let width = W * columns as u32;
+    let header = match legend {
+        Legend::Once => legend_height(panels, width),
+        Legend::PerPanel => 0,
+    };
+    (width, H * rows as u32 + header)
 }
 
 fn draw_figure<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     panels: &[Panel],
     columns: usize,
+    legend: Legend,
 ) -> DrawResult<(), DB> {
     register_fonts();
     root.fill(&WHITE)?;
     let columns = columns.max(1);
     let rows = panels.len().div_ceil(columns).max(1);
-    for (area, panel) in root.split_evenly((rows, columns)).iter().zip(panels) {
+    let (width, _) = root.dim_in_pixel();
+    let header = match legend {
+        Legend::Once => legend_height(panels, width),
+        Legend::PerPanel => 0,
+    };
+    let (top, body) = root.split_vertically(header);
+    let mut entries: Vec<(&str, Key)> = Vec::new();
+    for (area, panel) in body.split_evenly((rows, columns)).iter().zip(panels) {
         let x = fit(panel_xs(panel), panel.x_scale);
         let y = fit(panel_ys(panel), panel.y_scale);
-        match (panel.x_scale, panel.y_scale) {
-            (Scale::Linear, Scale::Linear) => draw_panel(area, panel, x, y),
-            (Scale::Linear, Scale::Log) => draw_panel(area, panel, x, y.log_scale()),
-            (Scale::Log, Scale::Linear) => draw_panel(area, panel, x.log_scale(), y),
-            (Scale::Log, Scale::Log) => draw_panel(area, panel, x.log_scale(), y.log_scale()),
+        let drawn = match (panel.x_scale, panel.y_scale) {
+            (Scale::Linear, Scale::Linear) => draw_panel(area, panel, x, y, legend),
+            (Scale::Linear, Scale::Log) => draw_panel(area, panel, x, y.log_scale(), legend),
+            (Scale::Log, Scale::Linear) => draw_panel(area, panel, x.log_scale(), y, legend),
+            (Scale::Log, Scale::Log) => {
+                draw_panel(area, panel, x.log_scale(), y.log_scale(), legend)
+            }
         }?;
+        for (label, key) in drawn {
+            if !label.is_empty() && entries.iter().all(|(l, _)| *l != label) {
+                entries.push((label, key));
+            }
+        }
+    }
+    if legend == Legend::Once {
+        figure_legend(&top, &entries)?;
     }
     root.present()
 }
@@ -303,7 +351,14 @@ fn rgb(hex: &str) -> RGBColor {
 type DrawResult<T, DB> = Result<T, DrawingAreaErrorKind<<DB as DrawingBackend>::ErrorType>>;
 type Chart<'a, DB, X, Y> = ChartContext<'a, DB, Cartesian2d<X, Y>>;
 
-fn draw_panel<DB, X, Y>(area: &DrawingArea<DB, Shift>, p: &Panel, x: X, y: Y) -> DrawResult<(), DB>
+/// One panel; its legend beside it, or (for [`Legend::Once`]) its entries returned.
+fn draw_panel<'p, DB, X, Y>(
+    area: &DrawingArea<DB, Shift>,
+    p: &'p Panel,
+    x: X,
+    y: Y,
+    legend: Legend,
+) -> DrawResult<Vec<(&'p str, Key)>, DB>
 where
     DB: DrawingBackend,
     X: AsRangedCoord<Value = f64>,
@@ -314,7 +369,10 @@ where
     let mut chart = ChartBuilder::on(area)
         .caption(&p.title, (FONT, TITLE, FontStyle::Bold))
         .margin(6)
-        .margin_right(RIGHT)
+        .margin_right(match legend {
+            Legend::PerPanel => RIGHT,
+            Legend::Once => RIGHT_NARROW,
+        })
         .x_label_area_size(BOTTOM)
         .y_label_area_size(LEFT)
         .build_cartesian_2d(x, y)?;
@@ -337,8 +395,11 @@ where
         .light_line_style(MINOR_GRID)
         .draw()?;
     draw_reference_lines(&mut chart, p)?;
-    let legend = draw_data(&mut chart, p)?;
-    draw_legend(area, chart.plotting_area().get_pixel_range(), &legend)
+    let entries = draw_data(&mut chart, p)?;
+    if legend == Legend::PerPanel {
+        draw_legend(area, chart.plotting_area().get_pixel_range(), &entries)?;
+    }
+    Ok(entries)
 }
 
 /// The panel's vertical and horizontal lines, dashed and labelled.
@@ -359,8 +420,10 @@ where
     for (v, label) in p.hlines.iter().filter(|(v, _)| valid(*v, p.y_scale)) {
         let line = [(x_range.start, *v), (x_range.end, *v)];
         chart.draw_series(DashedLineSeries::new(line, 2, 3, HLINE.into()))?;
-        let at = EmptyElement::at((x_range.start, *v));
-        chart.draw_series([at + Text::new(label.clone(), (4, -15), text.clone())])?;
+        // At the right end, above the line: clear of the y axis and its tick labels.
+        let right = text.pos(Pos::new(HPos::Right, VPos::Bottom));
+        let at = EmptyElement::at((x_range.end, *v));
+        chart.draw_series([at + Text::new(label.clone(), (-4, -3), right)])?;
     }
     Ok(())
 }
@@ -421,42 +484,6 @@ where
     Ok(legend)
 }
 
-/// The legend, right of the plot (`plot`, in pixels of the figure): there, rather than by
-/// `configure_series_labels`, which clamps what it draws into the plot.
-fn draw_legend<DB: DrawingBackend>(
-    area: &DrawingArea<DB, Shift>,
-    plot: (Range<i32>, Range<i32>),
-    legend: &[(&str, Key)],
-) -> DrawResult<(), DB> {
-    let (base_x, base_y) = area.get_base_pixel();
-    let (x, top) = (plot.0.end - base_x + 10, plot.1.start - base_y + 8);
-    let text = TextStyle::from((FONT, SMALL).into_font()).pos(Pos::new(HPos::Left, VPos::Center));
-    let labelled = legend.iter().filter(|(label, _)| !label.is_empty());
-    for (i, (label, key)) in labelled.enumerate() {
-        let y = top + 17 * i as i32;
-        let line = [(x, y), (x + 18, y)];
-        match *key {
-            Key::Line(style, false) => area.draw(&PathElement::new(line, style)),
-            Key::Line(style, true) => area.draw(&DashedPathElement::new(line, 6, 3, style)),
-            Key::Dot(color) => area.draw(&Circle::new((x + 9, y), 4, color.filled())),
-            Key::Swatch(fill) => area.draw(&Rectangle::new([(x, y - 5), (x + 18, y + 5)], fill)),
-        }?;
-        area.draw(&Text::new(*label, (x + 22, y), &text))?;
-    }
-    Ok(())
-}
-
-/// What a legend entry shows left of its label.
-#[derive(Clone, Copy)]
-enum Key {
-    /// A line's style, and whether it is dashed.
-    Line(ShapeStyle, bool),
-    /// A marker's colour.
-    Dot(RGBColor),
-    /// A band's fill.
-    Swatch(ShapeStyle),
-}
-
 /// plotters-svg writes each text as `<text …>`, the text, `</text>` on three lines; this puts
 /// them on one (`<text …>label</text>`), as the hand-written SVG had it.
 pub(crate) fn inline_text(svg: &str) -> String {
@@ -509,7 +536,7 @@ mod tests {
         p.series
             .push(Series::points("s", vec![1.0, 2.0], vec![3.0, 4.0]));
         let path = std::env::temp_dir().join(format!("plot-test-{}.png", std::process::id()));
-        figure_png(&[p.clone(), p], 2, &path).unwrap();
+        figure_png(&[p.clone(), p], 2, Legend::Once, &path).unwrap();
         let png = std::fs::read(&path).unwrap();
         std::fs::remove_file(&path).unwrap();
         assert!(png.starts_with(b"\x89PNG"));

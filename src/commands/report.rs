@@ -17,7 +17,7 @@ use chrono::{DateTime, Utc};
 use serde_json::Value;
 
 use crate::io::mcap::read_all;
-use crate::plot::{Band, Panel, Scale, Series, figure_png, figure_svg};
+use crate::plot::{Band, Legend, Panel, Scale, Series, figure_png, figure_svg_with};
 
 #[derive(Debug, clap::Args)]
 pub struct ReportArgs {
@@ -89,10 +89,10 @@ pub fn run(args: &ReportArgs) -> Result<()> {
     for (structure, o) in &by {
         for (name, panels, columns) in report_structure(structure, o)? {
             let svg = args.out.join(format!("{structure}-{name}.svg"));
-            std::fs::write(&svg, figure_svg(&panels, columns))
+            std::fs::write(&svg, figure_svg_with(&panels, columns, Legend::Once))
                 .with_context(|| format!("cannot write {}", svg.display()))?;
             let png = svg.with_extension("png");
-            figure_png(&panels, columns, &png)
+            figure_png(&panels, columns, Legend::Once, &png)
                 .with_context(|| format!("cannot write {}", png.display()))?;
             println!("{}\n{}", svg.display(), png.display());
         }
@@ -175,6 +175,9 @@ fn structure_svg(
 /// A figure: its name, panels and columns.
 type Figure = (&'static str, Vec<Panel>, usize);
 
+/// The axis of θ: a ratio, so its unit says what 1 is.
+const THETA_AXIS: &str = "θ, stiffness / nominal (1 = nominal)";
+
 /// The figures of one structure, time in days from its first estimate: stiffness,
 /// frequencies, ε and, with normalisation, the seasonal ones.
 fn report_structure(structure: &str, o: &Outputs) -> Result<Vec<Figure>> {
@@ -204,8 +207,26 @@ fn report_structure(structure: &str, o: &Outputs) -> Result<Vec<Figure>> {
     Ok(figures)
 }
 
+/// The latest loosening alert level of each connection: 2 alarm, 1 warning, 0 none or
+/// cleared.
+fn alert_levels(o: &Outputs) -> BTreeMap<&str, u8> {
+    let mut levels = BTreeMap::new();
+    for a in o.alerts.iter().filter(|a| a["kind"] == "loosening") {
+        if let Some(c) = a["connection"].as_str() {
+            let level = match a["level"].as_str() {
+                Some("alarm") => 2,
+                Some("warning") => 1,
+                _ => 0,
+            };
+            levels.insert(c, level);
+        }
+    }
+    levels
+}
+
 /// `stiffness`: one panel per parameter, with θ per set, its filtered level and that
-/// level's 95 % band, the baseline and the alerts.
+/// level's 95 % band, the baseline and the alerts; connections in alarm first, then in
+/// warning, then the others in the model's order.
 fn stiffness_figure(
     structure: &str,
     o: &Outputs,
@@ -213,8 +234,17 @@ fn stiffness_figure(
     days: &[f64],
     day: &dyn Fn(&Value) -> f64,
 ) -> Figure {
+    let levels = alert_levels(o);
+    let level = |n: &String| levels.get(n.as_str()).copied().unwrap_or(0);
+    let mut order: Vec<(usize, &String)> = names.iter().enumerate().collect();
+    order.sort_by_key(|(l, n)| (std::cmp::Reverse(level(n)), *l));
     let mut panels = Vec::new();
-    for (l, name) in names.iter().enumerate() {
+    for (l, name) in order {
+        let title = match level(name) {
+            2 => format!("{structure}: {name} (alarm)"),
+            1 => format!("{structure}: {name} (warning)"),
+            _ => format!("{structure}: {name}"),
+        };
         let col = |get: &dyn Fn(&Value) -> f64| -> Vec<f64> {
             o.stiffness
                 .iter()
@@ -222,9 +252,9 @@ fn stiffness_figure(
                 .collect()
         };
         let mut p = Panel::new(
-            &format!("{structure}: {name}"),
+            &title,
             "time, days",
-            "θ (relative stiffness)",
+            THETA_AXIS,
             Scale::Linear,
             Scale::Linear,
         );
@@ -346,7 +376,7 @@ fn epsilon_figure(
     let mut pe = Panel::new(
         &format!("{structure}: misfit ε (5) per set"),
         "time, days",
-        "ε",
+        "ε (dimensionless)",
         Scale::Linear,
         Scale::Log,
     );
@@ -529,7 +559,7 @@ fn law_panel(structure: &str, name: &str, o: &Outputs, l: usize) -> Option<Panel
     let mut p = Panel::new(
         &format!("{structure}: {name}"),
         "temperature, °C",
-        "θ (relative stiffness)",
+        THETA_AXIS,
         Scale::Linear,
         Scale::Linear,
     );

@@ -255,6 +255,56 @@ fn report_draws_stiffness_frequency_and_epsilon() {
         "a 95 % band per parameter"
     );
     assert!(svg.contains(">alarm<"), "alarm marker in the legend");
+    assert_reads_at_a_glance(&svg);
+}
+
+/// The stiffness figure reads at a glance: one legend for the figure, the connection in
+/// alarm first, every axis with its unit, and no text running past the figure's edges
+/// (a start-anchored text at most 7 px a character; the same estimate lays the legend).
+fn assert_reads_at_a_glance(svg: &str) {
+    assert_eq!(svg.matches(">95 % band of the filtered level<").count(), 1);
+    assert_eq!(svg.matches(">alarm<").count(), 1, "one legend entry");
+    let attr = |t: &str, name: &str| -> Option<f64> {
+        let rest = t.split(&format!(" {name}=\"")).nth(1)?;
+        rest.split('"').next()?.parse().ok()
+    };
+    let width = attr(svg.lines().next().unwrap(), "width").unwrap();
+    let texts: Vec<(&str, &str)> = svg
+        .lines()
+        .filter(|l| l.starts_with("<text"))
+        .filter_map(|l| {
+            let (tag, rest) = l.split_once('>')?;
+            Some((tag, rest.strip_suffix("</text>")?))
+        })
+        .collect();
+    let titles: Vec<&str> = texts
+        .iter()
+        .filter(|(t, _)| t.contains("font-weight=\"bold\""))
+        .map(|(_, s)| *s)
+        .collect();
+    assert_eq!(titles[0], "lab-frame: C1L@J1L (alarm)", "{titles:?}");
+    assert_eq!(titles.len(), 17);
+    let axes = texts
+        .iter()
+        .filter(|(_, s)| s.starts_with("θ, stiffness / nominal"));
+    assert_eq!(axes.count(), 17, "θ's unit on every panel");
+    for (tag, text) in &texts {
+        let x = attr(tag, "x").unwrap();
+        let w = 7.0 * text.chars().count() as f64;
+        let (from, to) = if tag.contains("text-anchor=\"end\"") {
+            (x - w, x)
+        } else if tag.contains("text-anchor=\"middle\"") || tag.contains("rotate(") {
+            (x - w / 2.0, x + w / 2.0)
+        } else {
+            (x, x + w)
+        };
+        if !tag.contains("rotate(") {
+            assert!(
+                from >= 0.0 && to <= width,
+                "`{text}` at {x} runs past 0..{width}"
+            );
+        }
+    }
 }
 
 /// Bad configuration fails at start, exit code 2, naming the key; a rejected input is not
