@@ -369,6 +369,7 @@ mod deploy;
 mod field;
 mod fleet;
 mod fleet_acl;
+mod monitoring;
 mod tracking;
 
 /// Peak resident set size of a running process (KiB).

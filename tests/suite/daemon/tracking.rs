@@ -92,6 +92,7 @@ fn daemon_over_zenoh_gives_what_replay_gives() {
     assert!(m.contains("boltwatch_update_seconds_count{structure=\"lab-frame\"} 1200"));
     assert!(m.contains("boltwatch_theta{structure=\"lab-frame\",parameter=\"C1L@J1L\"}"));
     assert_structure_metrics(&m, &st);
+    super::monitoring::assert_monitoring_names_exposed_metrics(&m);
     drop(outputs);
     drop(s);
 
