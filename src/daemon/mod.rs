@@ -22,6 +22,7 @@
 
 pub mod contact;
 pub mod fleet;
+pub mod history;
 pub mod lane;
 pub mod log;
 pub mod metrics;

@@ -100,12 +100,44 @@ fn daemon_over_zenoh_gives_what_replay_gives() {
     assert!(exit.success(), "{exit:?}; log:\n{}", daemon.log());
     let logs = daemon.log_files();
     assert_eq!(logs.len(), 1, "{logs:?}");
+    assert_history_reads_the_log(&d.join("state/log"), &want("stiffness"), &want("alerts"));
     let again = replayed(&logs[0], &d.join("again.mcap"), &CROSSCHECK_400_ENV);
     assert_eq!(payloads(&again, "stiffness"), want("stiffness"));
     assert_eq!(
         payloads(&read_all(&logs[0]).unwrap(), "stiffness"),
         want("stiffness")
     );
+}
+
+/// The history read back from the daemon's log holds every estimate and alert, the last
+/// estimate's values exactly (as f32), and comes from the cache the second time; a cache
+/// bounded below one file's history keeps nothing.
+fn assert_history_reads_the_log(dir: &std::path::Path, estimates: &[Value], alerts: &[Value]) {
+    use boltwatch::daemon::history::Cache;
+    let mut cache = Cache::new(64 << 20);
+    let h = cache.history(dir, "lab-frame").unwrap();
+    assert_eq!(h.samples.len(), estimates.len());
+    assert_eq!(h.marks.len(), alerts.len());
+    let last = estimates.last().unwrap();
+    let l = h.names.iter().position(|n| n == "C1L@J1L").unwrap();
+    let p = h.samples.last().unwrap().points[l];
+    let c1 = &last["parameters"][l];
+    assert_eq!(p.theta, c1["theta"].as_f64().unwrap() as f32);
+    assert_eq!(
+        p.upper95,
+        c1["filtered"]["upper95"].as_f64().unwrap() as f32
+    );
+    let bytes = cache.bytes();
+    assert!(bytes > 0);
+    // Compared as printed: a baseline not yet set is NaN, which equals nothing.
+    let same = |a: &boltwatch::daemon::history::History| format!("{a:?}") == format!("{h:?}");
+    assert!(same(&cache.history(dir, "lab-frame").unwrap()));
+    assert_eq!(cache.bytes(), bytes, "read from the cache");
+    let mut tiny = Cache::new(bytes - 1);
+    assert!(same(&tiny.history(dir, "lab-frame").unwrap()));
+    assert_eq!(tiny.bytes(), 0, "evicted");
+    let since = h.samples[h.samples.len() - 10].time_ms;
+    assert_eq!(h.clone().since(since).samples.len(), 10);
 }
 
 /// The value of the metric line `name{labels}`.
