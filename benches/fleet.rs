@@ -137,7 +137,7 @@ fn daemon_config(
         "[tracker]\ncrosscheck_every_sets = 100000\ncrosscheck_every_s = 0.0\n\
          [log]\nlevel = \"warn\"\n[zenoh]\nmode = \"client\"\nlisten = []\nconnect = {routers:?}\n\
          [daemon]\nstate = \"zenoh\"\nstate_dir = \"{}\"\n[fleet]\ngroup = \"load\"\nid = \"{id}\"\n\
-         [metrics]\nlisten = \"\"\n",
+         [metrics]\nlisten = \"\"\n[console]\nlisten = \"\"\n",
         dir.join(format!("state-{id}")).display()
     );
     for (s, m) in models {

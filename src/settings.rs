@@ -25,6 +25,7 @@ pub struct Settings {
     pub zenoh: ZenohSettings,
     pub daemon: DaemonSettings,
     pub metrics: MetricsSettings,
+    pub console: ConsoleSettings,
     pub identify: IdentifySettings,
     pub fleet: FleetSettings,
 }
@@ -106,6 +107,18 @@ pub struct DaemonSettings {
 pub struct MetricsSettings {
     /// `host:port` of the Prometheus endpoint ("": off).
     pub listen: String,
+}
+
+/// `[console]`: the operator's web page.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ConsoleSettings {
+    /// `host:port` of the console ("": off).
+    pub listen: String,
+    /// A structure with no set for this long is shown as silent (s).
+    pub silent_after_s: f64,
+    /// Bound of the history read back from the logs and kept in memory (MiB).
+    pub cache_mib: u64,
 }
 
 /// `[log]`.
@@ -321,12 +334,18 @@ impl Settings {
     /// The metrics endpoint (host:port, or off), then Zenoh's endpoints, or its
     /// configuration file when one is named (it must exist).
     fn validate_endpoints(&self) -> Result<()> {
-        if !self.metrics.listen.is_empty()
-            && self.metrics.listen.parse::<std::net::SocketAddr>().is_err()
-        {
+        for (key, listen, example) in [
+            ("metrics.listen", &self.metrics.listen, "127.0.0.1:9464"),
+            ("console.listen", &self.console.listen, "127.0.0.1:9465"),
+        ] {
+            if !listen.is_empty() && listen.parse::<std::net::SocketAddr>().is_err() {
+                bail!("configuration key {key}: `{listen}` is not host:port (e.g. {example})");
+            }
+        }
+        if self.console.silent_after_s.is_nan() || self.console.silent_after_s <= 0.0 {
             bail!(
-                "configuration key metrics.listen: `{}` is not host:port (e.g. 127.0.0.1:9464)",
-                self.metrics.listen
+                "configuration key console.silent_after_s: {} is not a positive number of seconds",
+                self.console.silent_after_s
             );
         }
         if self.zenoh.config_file.as_os_str().is_empty() {

@@ -3,7 +3,7 @@
 //! `[metrics] listen`, served by axum. A `prometheus-client` collector reads the shared state
 //! at scrape time and encodes it in the Prometheus text format (version 0.0.4).
 
-mod state;
+pub(crate) mod state;
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -183,7 +183,7 @@ impl Shared {
         Duration::from_millis(now.saturating_sub(self.heartbeat.load(Ordering::Relaxed)))
     }
 
-    fn status(&self) -> Status {
+    pub(crate) fn status(&self) -> Status {
         self.status
             .lock()
             .unwrap_or_else(|p| p.into_inner())

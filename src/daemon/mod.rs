@@ -20,6 +20,7 @@
 //! queued is processed, a running cross-check is awaited, the state is checkpointed and the
 //! log file is finished, so nothing received is lost and a restart duplicates nothing.
 
+pub mod console;
 pub mod contact;
 pub mod fleet;
 pub mod history;
@@ -57,7 +58,7 @@ pub async fn run(settings: Settings) -> Result<()> {
             done_tx,
         )
         .await?;
-        let served = serve(&settings.metrics, &watched, &mut done_rx).await?;
+        let served = serve(&settings, &watched, &mut done_rx).await?;
         let closed = fleet.stop().await;
         return drain(session, done_rx, closed, served).await;
     }
@@ -68,7 +69,7 @@ pub async fn run(settings: Settings) -> Result<()> {
         lanes.push(lane);
     }
     drop(done_tx);
-    let served = serve(&settings.metrics, &watched, &mut done_rx).await?;
+    let served = serve(&settings, &watched, &mut done_rx).await?;
     let closed = close_all(lanes).await;
     drain(session, done_rx, closed, served).await
 }
@@ -145,16 +146,14 @@ struct Served {
     /// The SIGTERM stream, no longer polled but held until the daemon stops.
     _sigterm: tokio::signal::unix::Signal,
     metrics_task: Option<JoinHandle<()>>,
+    console_task: Option<JoinHandle<()>>,
 }
 
 /// Serves until SIGTERM, SIGINT or the end of a tracking thread: starts the metrics
 /// endpoint, tells systemd the daemon is ready and feeds its watchdog.
-async fn serve(
-    metrics_settings: &MetricsSettings,
-    watched: &Watched,
-    done_rx: &mut DoneRx,
-) -> Result<Served> {
-    let metrics_task = serve_metrics(metrics_settings, watched).await?;
+async fn serve(settings: &Settings, watched: &Watched, done_rx: &mut DoneRx) -> Result<Served> {
+    let metrics_task = serve_metrics(&settings.metrics, watched).await?;
+    let console_task = serve_console(settings, watched).await?;
     let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
         .context("cannot install the SIGTERM handler")?;
     // systemd (Type=notify): ready once every structure is watched.
@@ -177,7 +176,28 @@ async fn serve(
         watchdog,
         _sigterm: sigterm,
         metrics_task,
+        console_task,
     })
+}
+
+/// The operator's console on `console.listen`, if one is configured.
+async fn serve_console(settings: &Settings, watched: &Watched) -> Result<Option<JoinHandle<()>>> {
+    let c = &settings.console;
+    if c.listen.is_empty() {
+        return Ok(None);
+    }
+    let listener = tokio::net::TcpListener::bind(&c.listen)
+        .await
+        .with_context(|| {
+            format!(
+                "configuration key console.listen: cannot listen on {}",
+                c.listen
+            )
+        })?;
+    tracing::info!("console on http://{}/", c.listen);
+    let log_dir = settings.daemon.state_dir.join("log");
+    let console = console::Console::new(c, watched.clone(), log_dir);
+    Ok(Some(tokio::spawn(console::serve(listener, console))))
 }
 
 /// The Prometheus endpoint on `metrics.listen` for every structure, if one is configured.
@@ -253,7 +273,10 @@ async fn drain(
             failure.get_or_insert(e.context(format!("tracking of {name}")));
         }
     }
-    if let Some(t) = served.metrics_task {
+    for t in [served.metrics_task, served.console_task]
+        .into_iter()
+        .flatten()
+    {
         t.abort();
     }
     session

@@ -128,7 +128,7 @@ impl Site {
         let mut toml = format!(
             "{NO_CROSSCHECK}[zenoh]\nmode = \"client\"\nlisten = []\nconnect = {:?}\n\
              [daemon]\nstate = \"zenoh\"\nstate_dir = \"{}\"\n[fleet]\ngroup = \"g\"\nid = \"{id}\"\n\
-             [metrics]\nlisten = \"{metrics}\"\n",
+             [metrics]\nlisten = \"{metrics}\"\n[console]\nlisten = \"\"\n",
             self.routers,
             self.dir.join(format!("state-{id}")).display()
         );

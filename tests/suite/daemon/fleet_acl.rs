@@ -96,7 +96,7 @@ fn daemon(site: &Site, id: &str) -> (Proc, std::path::PathBuf) {
     std::fs::write(d.join("daemon-client.json5"), z).unwrap();
     let mut toml = format!(
         "{NO_CROSSCHECK}[zenoh]\nconfig_file = \"{}\"\n[daemon]\nstate = \"zenoh\"\n\
-         state_dir = \"{}\"\n[fleet]\ngroup = \"g\"\nid = \"{id}\"\n[metrics]\nlisten = \"\"\n",
+         state_dir = \"{}\"\n[fleet]\ngroup = \"g\"\nid = \"{id}\"\n[metrics]\nlisten = \"\"\n[console]\nlisten = \"\"\n",
         d.join("daemon-client.json5").display(),
         d.join(format!("state-{id}")).display()
     );

@@ -39,6 +39,8 @@ pub struct Daemon {
     pub dir: PathBuf,
     pub endpoint: String,
     pub metrics: String,
+    /// The console's `host:port`.
+    pub console: String,
     config: PathBuf,
     env: Vec<(String, String)>,
 }
@@ -115,23 +117,24 @@ impl Daemon {
         env: Vec<(String, String)>,
     ) -> Self {
         let metrics = format!("127.0.0.1:{}", free_port());
+        let console = format!("127.0.0.1:{}", free_port());
         let config = dir.join("boltwatch.toml");
         std::fs::write(
             &config,
             format!(
-                "[zenoh]\n{zenoh}\n\n[daemon]\nstate_dir = \"{}\"\n{daemon_keys}\n\n[metrics]\nlisten = \"{metrics}\"\n\n{extra}\n",
+                "[zenoh]\n{zenoh}\n\n[daemon]\nstate_dir = \"{}\"\n{daemon_keys}\n\n[metrics]\nlisten = \"{metrics}\"\n\n[console]\nlisten = \"{console}\"\n\n{extra}\n",
                 dir.join("state").display()
             ),
         )
         .unwrap();
-        Self::spawn(dir, config, endpoint, metrics, env)
+        Self::spawn(dir, config, endpoint, (metrics, console), env)
     }
 
     fn spawn(
         dir: &Path,
         config: PathBuf,
         endpoint: String,
-        metrics: String,
+        (metrics, console): (String, String),
         env: Vec<(String, String)>,
     ) -> Self {
         let log = std::fs::OpenOptions::new()
@@ -153,6 +156,7 @@ impl Daemon {
             dir: dir.to_path_buf(),
             endpoint,
             metrics,
+            console,
             config,
             env,
         }
@@ -164,7 +168,7 @@ impl Daemon {
             &self.dir,
             self.config.clone(),
             self.endpoint.clone(),
-            self.metrics.clone(),
+            (self.metrics.clone(), self.console.clone()),
             self.env.clone(),
         )
     }

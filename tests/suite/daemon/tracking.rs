@@ -93,6 +93,7 @@ fn daemon_over_zenoh_gives_what_replay_gives() {
     assert!(m.contains("boltwatch_theta{structure=\"lab-frame\",parameter=\"C1L@J1L\"}"));
     assert_structure_metrics(&m, &st);
     super::monitoring::assert_monitoring_names_exposed_metrics(&m);
+    assert_console_shows_the_alarm(&daemon.console);
     drop(outputs);
     drop(s);
 
@@ -229,6 +230,57 @@ fn environment_readings_over_zenoh_are_joined_as_replay_joins_them() {
         want,
         "the log replays otherwise"
     );
+}
+
+/// A minimal HTTP GET on loopback: the whole response, whatever its status.
+pub fn http_response(addr: &str, path: &str) -> String {
+    use std::io::{Read, Write};
+    let mut c = std::net::TcpStream::connect(addr).unwrap();
+    write!(c, "GET {path} HTTP/1.1\r\nHost: {addr}\r\n\r\n").unwrap();
+    let mut s = String::new();
+    c.read_to_string(&mut s).unwrap();
+    s
+}
+
+/// The console of a daemon fed the loosening recording: the overview lists the structure
+/// with its alarm; its page has every connection's row, C1L@J1L first and in alarm, and
+/// the chart; every response forbids other origins; an unknown structure, a path out of
+/// the console and a query that is not a window are refused.
+fn assert_console_shows_the_alarm(console: &str) {
+    let home = http_get(console, "/");
+    assert!(
+        home.contains("content-security-policy: default-src 'none'"),
+        "{home}"
+    );
+    assert!(
+        home.contains("<tr class=\"alarm\"><td><a href=\"/structure/lab-frame\">"),
+        "{home}"
+    );
+    let page = http_get(console, "/structure/lab-frame?window=all");
+    let rows: Vec<&str> = page.split("<tr class=").skip(1).collect();
+    assert_eq!(rows.len(), 17, "a row per parameter");
+    assert!(
+        rows[0].starts_with("\"alarm\" id=\"c-C1L@J1L\""),
+        "{}",
+        rows[0]
+    );
+    assert!(page.contains("<svg") && page.contains(">lab-frame: C1L@J1L<"));
+    for other in ["href=\"http", "src=\"http", "href=\"//", "src=\"//", "url("] {
+        assert!(
+            !page.contains(other),
+            "a request to another origin: {other}"
+        );
+    }
+    for (path, status) in [
+        ("/structure/other", "404"),
+        ("/structure/..%2F..%2Fetc%2Fpasswd", "404"),
+        ("/../../etc/passwd", "404"),
+        ("/structure/lab-frame?window=1y", "400"),
+        ("/structure/lab-frame?window=24h&x=y", "400"),
+    ] {
+        let r = http_response(console, path);
+        assert!(r.starts_with(&format!("HTTP/1.1 {status}")), "{path}: {r}");
+    }
 }
 
 /// A minimal HTTP GET on loopback.
