@@ -433,6 +433,47 @@ impl<'g> Canvas<'g> {
     }
 }
 
+/// The frame with each connection coloured by its parameter's change from baseline in
+/// estimate `e` (the drift filter's level when it has one); a connection the data do not
+/// resolve on its own (alerts off) is drawn hollow. Shared by `report` and the console.
+pub fn estimate_svg(
+    g: &Geometry,
+    model: &crate::core::model::Model,
+    e: &crate::contract::Estimate,
+    width: f64,
+    height: f64,
+) -> String {
+    use crate::commands::diagnose::{largest_change, parameters_of};
+    let title = format!(
+        "{}: change of each connection from baseline, {}",
+        e.structure,
+        e.time.format("%Y-%m-%d %H:%M:%S UTC")
+    );
+    let mut c = Canvas::new(g, width, height, &title);
+    c.change_legend(width, 0.5);
+    c.connections(|mark| {
+        let changes: Vec<(String, f64, String)> = parameters_of(model, &mark.model_names)
+            .into_iter()
+            .filter_map(|l| {
+                let name = &model.parameters()[l].name;
+                let p = e.parameters.iter().find(|p| p.name == *name)?;
+                if p.alerts_off.is_some() {
+                    return None;
+                }
+                let change = p.filtered.change.or(p.change)?;
+                Some((name.clone(), change, format!(" (θ {:.3})", p.theta)))
+            })
+            .collect();
+        largest_change(&changes)
+    });
+    c.text(
+        10.0,
+        38.0,
+        "hollow: no estimate, or not resolved by the data on its own (alerts off)",
+    );
+    c.finish()
+}
+
 /// Screen-plane coordinates (module docs).
 fn project(planar: bool, p: P3) -> (f64, f64) {
     if planar {

@@ -119,6 +119,12 @@ pub struct ConsoleSettings {
     pub silent_after_s: f64,
     /// Bound of the history read back from the logs and kept in memory (MiB).
     pub cache_mib: u64,
+    /// PEM certificate chain and private key: both set serves HTTPS ("": plain HTTP).
+    pub tls_cert: PathBuf,
+    pub tls_key: PathBuf,
+    /// A password file of `user:bcrypt-hash` lines (as `htpasswd -B` writes): set, every
+    /// request needs HTTP basic authentication by one of its users ("": none).
+    pub users_file: PathBuf,
 }
 
 /// `[log]`.
@@ -346,6 +352,12 @@ impl Settings {
             bail!(
                 "configuration key console.silent_after_s: {} is not a positive number of seconds",
                 self.console.silent_after_s
+            );
+        }
+        let c = &self.console;
+        if c.tls_cert.as_os_str().is_empty() != c.tls_key.as_os_str().is_empty() {
+            bail!(
+                "configuration keys console.tls_cert and console.tls_key: set both (HTTPS) or neither"
             );
         }
         if self.zenoh.config_file.as_os_str().is_empty() {

@@ -16,6 +16,7 @@ use anyhow::{Context, Result, bail};
 use chrono::{DateTime, Utc};
 use serde_json::Value;
 
+use crate::contract::AlertLevel;
 use crate::io::mcap::read_all;
 use crate::plot::{Band, Legend, Panel, Scale, Series, figure_png, figure_svg_with};
 
@@ -122,54 +123,16 @@ pub fn run(args: &ReportArgs) -> Result<()> {
     Ok(())
 }
 
-/// The frame with each connection coloured by its parameter's change from baseline in the
-/// last estimate (the drift filter's level when it has one).
+/// The frame with each connection coloured by its parameter's change in the last estimate.
 fn structure_svg(
     spec: &crate::core::model::spec::ModelSpec,
     model: &crate::core::model::Model,
     o: &Outputs,
 ) -> Option<String> {
-    use crate::draw::{Canvas, Geometry};
-    let g = Geometry::of(spec)?;
-    let last = o.stiffness.last()?;
-    let params = last["parameters"].as_array()?;
-    let (w, h) = (720.0, 640.0);
-    let mut c = Canvas::new(
-        &g,
-        w,
-        h,
-        &format!(
-            "{}: change of each connection from baseline, {}",
-            spec.name,
-            last["time"].as_str().unwrap_or("last estimate")
-        ),
-    );
-    c.change_legend(w, 0.5);
-    c.connections(|mark| {
-        let changes: Vec<(String, f64, String)> =
-            super::diagnose::parameters_of(model, &mark.model_names)
-                .into_iter()
-                .filter_map(|l| {
-                    let name = &model.parameters()[l].name;
-                    let p = params.iter().find(|p| p["name"] == *name)?;
-                    // A connection the data do not resolve is drawn hollow.
-                    if p.get("alerts_off").is_some() {
-                        return None;
-                    }
-                    let change = p["filtered"]["change"]
-                        .as_f64()
-                        .or_else(|| p["change"].as_f64())?;
-                    Some((name.clone(), change, format!(" (θ {:.3})", f(&p["theta"]))))
-                })
-                .collect();
-        super::diagnose::largest_change(&changes)
-    });
-    c.text(
-        10.0,
-        38.0,
-        "hollow: no estimate, or not resolved by the data on its own (alerts off)",
-    );
-    Some(c.finish())
+    let g = crate::draw::Geometry::of(spec)?;
+    let last: crate::contract::Estimate =
+        serde_json::from_value(o.stiffness.last()?.clone()).ok()?;
+    Some(crate::draw::estimate_svg(&g, model, &last, 720.0, 640.0))
 }
 
 /// A figure: its name, panels and columns.
@@ -213,12 +176,8 @@ fn alert_levels(o: &Outputs) -> BTreeMap<&str, u8> {
     let mut levels = BTreeMap::new();
     for a in o.alerts.iter().filter(|a| a["kind"] == "loosening") {
         if let Some(c) = a["connection"].as_str() {
-            let level = match a["level"].as_str() {
-                Some("alarm") => 2,
-                Some("warning") => 1,
-                _ => 0,
-            };
-            levels.insert(c, level);
+            let level = serde_json::from_value(a["level"].clone()).ok();
+            levels.insert(c, AlertLevel::severity(level));
         }
     }
     levels

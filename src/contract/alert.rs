@@ -68,6 +68,16 @@ impl AlertLevel {
             Self::Cleared => "cleared",
         }
     }
+
+    /// How severe: 0 when none is active (`None` or cleared), 1 warning, 2 alarm. The
+    /// order the console, the report and the metrics sort connections by.
+    pub fn severity(level: Option<Self>) -> u8 {
+        match level {
+            Some(Self::Warning) => 1,
+            Some(Self::Alarm) => 2,
+            Some(Self::Cleared) | None => 0,
+        }
+    }
 }
 
 /// The fields of each kind of alert.

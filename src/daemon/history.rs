@@ -28,6 +28,9 @@ pub struct Point {
 #[derive(Debug, Clone)]
 pub struct Sample {
     pub time_ms: i64,
+    /// ε (6) of the estimate and its χ² bound.
+    pub epsilon: f32,
+    pub epsilon_bound: f32,
     pub points: Vec<Point>,
 }
 
@@ -105,24 +108,43 @@ impl History {
             .collect();
         self.samples.push(Sample {
             time_ms: e.time.timestamp_millis(),
+            epsilon: e.epsilon as f32,
+            epsilon_bound: e.epsilon_bound as f32,
             points,
         });
     }
+}
 
-    /// Appends `other` (a later file's history).
-    fn extend(&mut self, other: &History) {
-        if self.names.is_empty() {
-            self.names = other.names.clone();
-        }
-        self.samples.extend(other.samples.iter().cloned());
-        self.marks.extend(other.marks.iter().cloned());
+/// A structure's whole history: its log files' histories, oldest first, shared with the
+/// cache (nothing is copied per request).
+#[derive(Debug, Clone, Default)]
+pub struct Logged {
+    pub files: Vec<Arc<History>>,
+}
+
+impl Logged {
+    /// The parameters' names (the first file's that has any).
+    pub fn names(&self) -> &[String] {
+        self.files
+            .iter()
+            .find(|f| !f.names.is_empty())
+            .map_or(&[], |f| &f.names)
     }
 
-    /// Only what happened at or after `from_ms`.
-    pub fn since(mut self, from_ms: i64) -> Self {
-        self.samples.retain(|s| s.time_ms >= from_ms);
-        self.marks.retain(|m| m.time_ms >= from_ms);
-        self
+    /// Every estimate, oldest first.
+    pub fn samples(&self) -> impl DoubleEndedIterator<Item = &Sample> {
+        self.files.iter().flat_map(|f| f.samples.iter())
+    }
+
+    /// Every alert, oldest first.
+    pub fn marks(&self) -> impl Iterator<Item = &Mark> {
+        self.files.iter().flat_map(|f| f.marks.iter())
+    }
+
+    /// The estimates at or after `from_ms` (every one for `None`).
+    pub fn samples_since(&self, from_ms: Option<i64>) -> Vec<&Sample> {
+        let from = from_ms.unwrap_or(i64::MIN);
+        self.samples().filter(|s| s.time_ms >= from).collect()
     }
 }
 
@@ -133,7 +155,12 @@ pub struct Cache {
     /// File → (its history, when it was last used).
     files: HashMap<PathBuf, (Arc<History>, u64)>,
     clock: u64,
+    /// Per structure, the last file being written that was read: its path, length and
+    /// time, and its history.
+    parts: HashMap<String, PartRead>,
 }
+
+type PartRead = ((PathBuf, u64, Option<std::time::SystemTime>), Arc<History>);
 
 impl Cache {
     pub fn new(max_bytes: usize) -> Self {
@@ -142,24 +169,26 @@ impl Cache {
             bytes: 0,
             files: HashMap::new(),
             clock: 0,
+            parts: HashMap::new(),
         }
     }
 
-    /// The bytes the cache holds now.
+    /// The bytes the cache holds now: the closed files' histories (within the bound) and,
+    /// per structure, the file being written (bounded by the logs' rotation size).
     pub fn bytes(&self) -> usize {
-        self.bytes
+        self.bytes + self.parts.values().map(|(_, h)| h.bytes()).sum::<usize>()
     }
 
     /// `structure`'s history from its log files in `dir`, oldest first.
-    pub fn history(&mut self, dir: &Path, structure: &str) -> Result<History> {
-        let mut all = History::default();
+    pub fn history(&mut self, dir: &Path, structure: &str) -> Result<Logged> {
+        let mut all = Logged::default();
         for path in log_files(dir, structure)? {
-            if path.extension().is_some_and(|e| e == "part") {
-                all.extend(&read_part(&path, structure)?);
+            let h = if path.extension().is_some_and(|e| e == "part") {
+                self.part(&path, structure)?
             } else {
-                let h = self.closed(&path, structure)?;
-                all.extend(&h);
-            }
+                self.closed(&path, structure)?
+            };
+            all.files.push(h);
         }
         Ok(all)
     }
@@ -179,6 +208,24 @@ impl Cache {
         self.files
             .insert(path.to_path_buf(), (h.clone(), self.clock));
         self.evict();
+        Ok(h)
+    }
+
+    /// The file being written: read again when its length or time changed since the last
+    /// read (it only grows), else the last read's.
+    fn part(&mut self, path: &Path, structure: &str) -> Result<Arc<History>> {
+        let meta =
+            std::fs::metadata(path).with_context(|| format!("reading {}", path.display()))?;
+        let stamp = (meta.len(), meta.modified().ok());
+        if let Some(((p, len, time), h)) = self.parts.get(structure)
+            && p == path
+            && (*len, *time) == stamp
+        {
+            return Ok(h.clone());
+        }
+        let h = Arc::new(read_part(path, structure)?);
+        let read = ((path.to_path_buf(), stamp.0, stamp.1), h.clone());
+        self.parts.insert(structure.to_string(), read);
         Ok(h)
     }
 

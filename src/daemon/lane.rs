@@ -254,6 +254,7 @@ fn recover(
         (d.queue_mib as u64) << 20,
         d.max_payload_bytes,
     );
+    let _ = shared.model.set(structure_model.clone());
     let fence = remote.as_ref().map(|r| r.fence.clone());
     let mut worker = Worker::new(
         structure_model,

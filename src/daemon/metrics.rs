@@ -75,6 +75,8 @@ pub struct Status {
     /// The last alert per (kind, connection); a `cleared` one stays until replaced.
     pub alerts: BTreeMap<(AlertKind, Option<String>), Alert>,
     pub crosschecks: u64,
+    /// The last cross-check published.
+    pub last_crosscheck: Option<contract::Crosscheck>,
     /// Cross-checks not started because the previous one was still running.
     pub crosschecks_skipped: u64,
     /// Why this structure's cross-checks do not fit the memory budget, found at start.
@@ -99,7 +101,10 @@ impl Status {
                 self.alerts
                     .insert((a.kind, a.connection.clone()), (**a).clone());
             }
-            Output::Crosscheck(_) => self.crosschecks += 1,
+            Output::Crosscheck(c) => {
+                self.crosschecks += 1;
+                self.last_crosscheck = Some((**c).clone());
+            }
             Output::Rejected(_) | Output::Modal(_) => {}
         }
     }
@@ -131,7 +136,18 @@ pub struct Shared {
     pub missed: AtomicU64,
     pub latency: Histogram,
     pub status: Mutex<Status>,
+    /// The number of outputs noted so far, watched by the console's live pages.
+    pub changed: tokio::sync::watch::Sender<u64>,
+    /// The structure's model file and model, once its lane has loaded them (the console
+    /// draws the structure from them).
+    pub model: std::sync::OnceLock<Arc<StructureModel>>,
 }
+
+/// A structure's model file (absent for imported matrices) and its model.
+pub type StructureModel = (
+    Option<crate::core::model::spec::ModelSpec>,
+    crate::core::model::Model,
+);
 
 impl Shared {
     /// Takes an input the worker took off the queue off the queue's depth and bytes.
@@ -164,7 +180,15 @@ impl Shared {
             missed: AtomicU64::new(0),
             latency: Histogram::default(),
             status: Mutex::new(Status::default()),
+            changed: tokio::sync::watch::Sender::new(0),
+            model: std::sync::OnceLock::new(),
         })
+    }
+
+    /// Notes an output that was published, and tells the console's live pages.
+    pub fn noted(&self, output: &Output) {
+        self.with_status(|st| st.note(output));
+        self.changed.send_modify(|n| *n += 1);
     }
 
     /// Notes that the tracking loop is alive.

@@ -183,21 +183,24 @@ async fn serve(settings: &Settings, watched: &Watched, done_rx: &mut DoneRx) -> 
 /// The operator's console on `console.listen`, if one is configured.
 async fn serve_console(settings: &Settings, watched: &Watched) -> Result<Option<JoinHandle<()>>> {
     let c = &settings.console;
-    if c.listen.is_empty() {
+    let Some(listener) = bind_listener("console.listen", &c.listen).await? else {
         return Ok(None);
+    };
+    let access = console::Access::of(c)?;
+    tracing::info!("console on {}://{}/", access.scheme(), c.listen);
+    let loopback = listener.local_addr().is_ok_and(|a| a.ip().is_loopback());
+    if !loopback && c.users_file.as_os_str().is_empty() {
+        tracing::warn!(
+            "the console on {} is open to anyone who reaches it: set console.users_file, or \
+             put it behind a reverse proxy with authentication",
+            c.listen
+        );
     }
-    let listener = tokio::net::TcpListener::bind(&c.listen)
-        .await
-        .with_context(|| {
-            format!(
-                "configuration key console.listen: cannot listen on {}",
-                c.listen
-            )
-        })?;
-    tracing::info!("console on http://{}/", c.listen);
     let log_dir = settings.daemon.state_dir.join("log");
     let console = console::Console::new(c, watched.clone(), log_dir);
-    Ok(Some(tokio::spawn(console::serve(listener, console))))
+    Ok(Some(tokio::spawn(console::serve(
+        listener, console, access,
+    ))))
 }
 
 /// The Prometheus endpoint on `metrics.listen` for every structure, if one is configured.
@@ -205,22 +208,25 @@ async fn serve_metrics(
     metrics_settings: &MetricsSettings,
     watched: &Watched,
 ) -> Result<Option<JoinHandle<()>>> {
-    if metrics_settings.listen.is_empty() {
+    let Some(listener) = bind_listener("metrics.listen", &metrics_settings.listen).await? else {
         return Ok(None);
-    }
-    let listener = tokio::net::TcpListener::bind(&metrics_settings.listen)
-        .await
-        .with_context(|| {
-            format!(
-                "configuration key metrics.listen: cannot listen on {}",
-                metrics_settings.listen
-            )
-        })?;
+    };
     tracing::info!("metrics on http://{}/metrics", metrics_settings.listen);
     Ok(Some(tokio::spawn(metrics::serve(
         listener,
         watched.clone(),
     ))))
+}
+
+/// A listener on the address of configuration key `key` (`None` when it is empty: off).
+async fn bind_listener(key: &str, listen: &str) -> Result<Option<tokio::net::TcpListener>> {
+    if listen.is_empty() {
+        return Ok(None);
+    }
+    let listener = tokio::net::TcpListener::bind(listen)
+        .await
+        .with_context(|| format!("configuration key {key}: cannot listen on {listen}"))?;
+    Ok(Some(listener))
 }
 
 /// With systemd's WatchdogSec, a ping every half period, but only while every tracking

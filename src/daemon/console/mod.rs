@@ -6,10 +6,16 @@
 //! levels over a window (`?window=24h|30d|all`) read back from the daemon's own logs.
 //!
 //! Pages are plain HTML with the charts drawn server-side as SVG; nothing is fetched from
-//! anywhere else, and every response forbids it (Content-Security-Policy).
+//! anywhere else, and every response forbids it (Content-Security-Policy). The one script,
+//! `/console.js`, keeps a page live: it listens to the page's server-sent events
+//! (`/events`, `/structure/<name>/events`) and fetches the page again when they say
+//! something changed.
 
+mod access;
+mod charts;
 mod pages;
 
+use std::convert::Infallible;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -17,6 +23,7 @@ use std::time::Duration;
 use axum::Router;
 use axum::extract::{Path, State};
 use axum::http::{HeaderValue, StatusCode, Uri, header};
+use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::get;
 
@@ -72,19 +79,66 @@ impl Window {
     }
 }
 
-/// Serves the console on `listener` until the task is dropped.
-pub async fn serve(listener: tokio::net::TcpListener, console: Arc<Console>) {
-    let _ = axum::serve(listener, app(console)).await;
+/// How the console is reached: over TLS or not, by the users of a password file or anyone.
+pub struct Access {
+    tls: Option<axum_server::tls_rustls::RustlsConfig>,
+    users: Option<Arc<access::Users>>,
 }
 
-/// The console's routes, every response with the security headers.
-pub fn app(console: Arc<Console>) -> Router {
+impl Access {
+    /// From `[console]`: the certificate and key must load, and the password file.
+    pub fn of(settings: &ConsoleSettings) -> anyhow::Result<Self> {
+        let tls = if settings.tls_cert.as_os_str().is_empty() {
+            None
+        } else {
+            Some(access::tls_config(&settings.tls_cert, &settings.tls_key)?)
+        };
+        let users = if settings.users_file.as_os_str().is_empty() {
+            None
+        } else {
+            Some(Arc::new(access::Users::load(&settings.users_file)?))
+        };
+        Ok(Self { tls, users })
+    }
+
+    /// "https" or "http".
+    pub fn scheme(&self) -> &'static str {
+        if self.tls.is_some() { "https" } else { "http" }
+    }
+}
+
+/// Serves the console on `listener` until the task is dropped.
+pub async fn serve(listener: tokio::net::TcpListener, console: Arc<Console>, access: Access) {
+    let app = app(console, access.users);
+    let Some(tls) = access.tls else {
+        let _ = axum::serve(listener, app).await;
+        return;
+    };
+    let served = listener
+        .into_std()
+        .and_then(|l| axum_server::tls_rustls::from_tcp_rustls(l, tls));
+    match served {
+        Ok(server) => {
+            let _ = server.serve(app.into_make_service()).await;
+        }
+        Err(e) => tracing::error!("console: cannot serve HTTPS: {e}"),
+    }
+}
+
+/// The console's routes, every response with the security headers, every request
+/// authenticated when `users` is set.
+pub fn app(console: Arc<Console>, users: Option<Arc<access::Users>>) -> Router {
     Router::new()
         .route("/", get(overview))
         .route("/structure/{name}", get(structure))
+        .route("/events", get(overview_events))
+        .route("/structure/{name}/events", get(structure_events))
         .route("/console.css", get(css))
+        .route("/console.js", get(js))
+        .route("/favicon.svg", get(icon))
         .fallback(|| async { not_found("no such page") })
         .with_state(console)
+        .layer(axum::middleware::from_fn_with_state(users, access::require))
         .layer(axum::middleware::map_response(secure))
 }
 
@@ -95,7 +149,7 @@ async fn secure(mut r: Response) -> Response {
     for (name, value) in [
         (
             header::CONTENT_SECURITY_POLICY,
-            "default-src 'none'; style-src 'self'; img-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'",
+            "default-src 'none'; style-src 'self'; script-src 'self'; connect-src 'self'; img-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'",
         ),
         (header::X_CONTENT_TYPE_OPTIONS, "nosniff"),
         (header::REFERRER_POLICY, "no-referrer"),
@@ -156,12 +210,81 @@ async fn css() -> Response {
         .into_response()
 }
 
+async fn icon() -> Response {
+    ([(header::CONTENT_TYPE, "image/svg+xml")], pages::ICON).into_response()
+}
+
+async fn js() -> Response {
+    (
+        [(header::CONTENT_TYPE, "text/javascript; charset=utf-8")],
+        pages::JS,
+    )
+        .into_response()
+}
+
+/// The least time between two events of one stream: a page is fetched again on each.
+const EVENT_GAP: Duration = Duration::from_secs(1);
+
+/// `/structure/<name>/events`: an event (the number of outputs so far) whenever the
+/// structure published something, at most one per [`EVENT_GAP`]; the stream ends when
+/// the daemon stops watching the structure.
+async fn structure_events(State(c): State<Arc<Console>>, Path(name): Path<String>) -> Response {
+    let Some(shared) = c.watched_structure(&name) else {
+        return not_found("this daemon does not watch that structure");
+    };
+    let rx = shared.changed.subscribe();
+    drop(shared);
+    let stream = futures_util::stream::unfold((rx, false), |(mut rx, waited)| async move {
+        if waited {
+            tokio::time::sleep(EVENT_GAP).await;
+        }
+        rx.changed().await.ok()?;
+        let n = *rx.borrow_and_update();
+        Some((
+            Ok::<_, Infallible>(Event::default().data(n.to_string())),
+            (rx, true),
+        ))
+    });
+    Sse::new(stream)
+        .keep_alive(KeepAlive::default())
+        .into_response()
+}
+
+/// `/events`: an event whenever any structure published something or the structures
+/// watched changed, looked at every [`EVENT_GAP`].
+async fn overview_events(State(c): State<Arc<Console>>) -> Response {
+    let first = c.outputs_so_far();
+    let stream = futures_util::stream::unfold((c, first), |(c, mut seen)| async move {
+        loop {
+            tokio::time::sleep(EVENT_GAP).await;
+            let now = c.outputs_so_far();
+            if now != seen {
+                seen = now;
+                let n: u64 = seen.iter().map(|(_, n)| n).sum();
+                let event = Event::default().data(n.to_string());
+                return Some((Ok::<_, Infallible>(event), (c, seen)));
+            }
+        }
+    });
+    Sse::new(stream)
+        .keep_alive(KeepAlive::default())
+        .into_response()
+}
+
 impl Console {
     /// The structure of that name among those watched now (a name is only ever compared,
     /// never used as a path).
     fn watched_structure(&self, name: &str) -> Option<Arc<super::metrics::Shared>> {
         let all = self.watched.read().ok()?;
         all.iter().find(|s| s.structure == name).cloned()
+    }
+
+    /// Each structure watched with the number of outputs it has published.
+    fn outputs_so_far(&self) -> Vec<(String, u64)> {
+        let all = self.watched.read().map(|v| v.clone()).unwrap_or_default();
+        all.iter()
+            .map(|s| (s.structure.clone(), *s.changed.borrow()))
+            .collect()
     }
 }
 

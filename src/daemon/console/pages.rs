@@ -3,19 +3,29 @@
 use std::fmt::Write as _;
 use std::sync::atomic::Ordering;
 
-use super::{Console, Window};
+use super::{Console, Window, charts};
+use crate::contract::stiffness::ParameterEstimate;
 use crate::contract::{AlertKind, AlertLevel};
-use crate::daemon::history::History;
-use crate::daemon::metrics::state::{level_value, loss};
+use crate::daemon::history::Logged;
+use crate::daemon::metrics::state::loss;
 use crate::daemon::metrics::{Shared, Status};
-use crate::plot::{Band, Legend, Panel, Scale, Series, figure_svg_with};
 
 /// The console's style sheet (served as `/console.css`: the policy allows no inline style).
 pub const CSS: &str = "body{font-family:sans-serif;margin:1.5em;color:#222}\
 table{border-collapse:collapse}td,th{padding:.25em .7em;border-bottom:1px solid #ddd;text-align:right}\
 td:first-child,th:first-child{text-align:left}tr.alarm td{background:#fbe3e3}\
 tr.warning td{background:#fdf0dc}tr.silent td{background:#eee;color:#a00}\
-.level{font-weight:bold}nav a{margin-right:1em}svg{max-width:100%;height:auto}\n";
+.level{font-weight:bold}nav a{margin-right:1em}svg{max-width:100%;height:auto}\
+svg.spark{vertical-align:middle}h2{margin-top:1.5em}\n";
+
+/// The console's icon: a hexagonal bolt head.
+pub const ICON: &str = "<svg xmlns=\"http://www.w3.org/2000/svg\" viewBox=\"0 0 32 32\">\
+<polygon points=\"16,2 28,9 28,23 16,30 4,23 4,9\" fill=\"#1f77b4\"/>\
+<circle cx=\"16\" cy=\"16\" r=\"6\" fill=\"#fff\"/></svg>\n";
+
+/// The console's only script: live updates. On each event of the page's stream it fetches
+/// the page again and swaps in its live part (at most one fetch at a time).
+pub const JS: &str = include_str!("console.js");
 
 /// Text made safe for HTML.
 pub fn escape(s: &str) -> String {
@@ -33,11 +43,17 @@ pub fn escape(s: &str) -> String {
     out
 }
 
-fn page(title: &str, body: &str) -> String {
+/// A page: its live part in `<main id="live">`, which `/console.js` fetches again when
+/// the stream `events` says something changed (without JavaScript the page is complete,
+/// only not live).
+fn page(title: &str, events: Option<&str>, body: &str) -> String {
+    let live = events.map_or(String::new(), |e| format!(" data-events=\"{}\"", escape(e)));
     format!(
         "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\
-         <title>{} · boltwatch</title><link rel=\"stylesheet\" href=\"/console.css\"></head>\
-         <body>{body}</body></html>\n",
+         <title>{} · boltwatch</title><link rel=\"stylesheet\" href=\"/console.css\">\
+         <link rel=\"icon\" href=\"/favicon.svg\" type=\"image/svg+xml\">\
+         <script src=\"/console.js\" defer></script></head>\
+         <body{live}><main id=\"live\">{body}</main></body></html>\n",
         escape(title)
     )
 }
@@ -46,6 +62,7 @@ fn page(title: &str, body: &str) -> String {
 pub fn message(title: &str, text: &str) -> String {
     page(
         title,
+        None,
         &format!("<h1>{}</h1><p>{}</p>", escape(title), escape(text)),
     )
 }
@@ -90,26 +107,85 @@ pub fn overview(c: &Console) -> String {
             _ => "ok",
         };
         let name = escape(&s.structure);
+        let h = logged(c, &s.structure).ok();
         let _ = write!(
             rows,
-            "<tr class=\"{class}\"><td><a href=\"/structure/{name}\">{name}</a></td><td>{}{}</td>\
-             <td>{}</td><td>{alarms}</td><td>{warnings}</td></tr>",
+            "<tr class=\"{class}\" id=\"s-{name}\"><td><a href=\"/structure/{name}\">{name}</a></td>\
+             <td>{}{}</td><td>{}</td><td>{}</td><td class=\"alarms\">{alarms}</td>\
+             <td>{warnings}</td><td>{}</td></tr>",
             age_text(age),
             if silent { " (silent)" } else { "" },
-            st.accepted
+            st.accepted,
+            h.as_ref().map_or("–".into(), |h| per_hour(h).to_string()),
+            most_changed(h.as_ref(), &st),
         );
     }
     page(
         "Structures",
+        Some("/events"),
         &format!(
             "<h1>Structures</h1><table><thead><tr><th>structure</th><th>last set</th>\
-             <th>sets tracked</th><th>alarms</th><th>warnings</th></tr></thead>\
+             <th>sets tracked</th><th>sets in the last hour</th><th>alarms</th>\
+             <th>warnings</th><th>most changed connection, last 24 h</th></tr></thead>\
              <tbody>{rows}</tbody></table>"
         ),
     )
 }
 
-/// `/structure/<name>`: the structure's state and its chart over `window`.
+/// The structure's logged history (empty when it cannot be read: the page says so where
+/// it draws from it).
+fn logged(c: &Console, structure: &str) -> Result<Logged, String> {
+    let mut cache = c
+        .cache
+        .lock()
+        .map_err(|_| "the history cache failed".to_string())?;
+    cache
+        .history(&c.log_dir, structure)
+        .map_err(|e| format!("the history cannot be read from the logs: {e:#}"))
+}
+
+/// The number of sets logged over the last hour.
+fn per_hour(h: &Logged) -> usize {
+    let now = chrono::Utc::now().timestamp_millis();
+    h.samples()
+        .rev()
+        .take_while(|x| x.time_ms >= now - 3_600_000)
+        .count()
+}
+
+/// The connection whose filtered level lost most (or, before a baseline, moved most) in
+/// the last estimate, with a sparkline of that level over the last 24 h.
+fn most_changed(h: Option<&Logged>, st: &Status) -> String {
+    let Some(e) = &st.last_estimate else {
+        return "–".into();
+    };
+    let size = |p: &ParameterEstimate| loss(p).map_or(0.0, f64::abs);
+    let Some((l, p)) = e
+        .parameters
+        .iter()
+        .enumerate()
+        .max_by(|a, b| size(a.1).total_cmp(&size(b.1)))
+    else {
+        return "–".into();
+    };
+    let Some(h) = h else {
+        return escape(&p.name);
+    };
+    let last = h.samples().next_back().map_or(0, |x| x.time_ms);
+    let day = h.samples_since(Some(last - 86_400_000));
+    let keep = charts::envelope(&day, |x| x.points[l].level, 120);
+    let values: Vec<f32> = keep.iter().map(|&i| day[i].points[l].level).collect();
+    let title = format!("{}: filtered θ over the last 24 h", p.name);
+    format!(
+        "{} {} {}",
+        escape(&p.name),
+        charts::sparkline(&values, 120.0, 24.0, &title),
+        loss(p).map_or(String::new(), |x| format!("{:.1} %", 100.0 * x))
+    )
+}
+
+/// `/structure/<name>`: the structure's state, its connections, its charts over `window`,
+/// its drawing, frequencies and last cross-check.
 pub fn structure(c: &Console, s: &Shared, window: Window) -> String {
     let st = s.status();
     let name = escape(&s.structure);
@@ -117,12 +193,48 @@ pub fn structure(c: &Console, s: &Shared, window: Window) -> String {
         "<nav><a href=\"/\">all structures</a><a href=\"?window=24h\">24 h</a>\
          <a href=\"?window=30d\">30 days</a><a href=\"?window=all\">all</a></nav><h1>{name}</h1>"
     );
+    body.push_str(&summary(s, &st));
+    body.push_str(&connection_table(&st));
+    let h = logged(c, &s.structure);
+    let order = st.last_estimate.as_ref().map_or(Vec::new(), |e| {
+        let names: Vec<String> = e.parameters.iter().map(|p| p.name.clone()).collect();
+        by_level(&st, &names)
+    });
+    match &h {
+        Ok(h) if h.samples().next().is_some() => {
+            let last = h.samples().next_back().map_or(0, |x| x.time_ms);
+            let samples = h.samples_since(window.millis().map(|ms| last - ms));
+            let order: Vec<usize> = order.into_iter().filter(|&l| l < h.names().len()).collect();
+            body.push_str("<h2>Filtered stiffness</h2>");
+            body.push_str(&charts::levels(&s.structure, h, &samples, &order));
+            body.push_str(&drawing(s, &st));
+            body.push_str(&frequencies(&st));
+            body.push_str("<h2>Misfit</h2>");
+            body.push_str(&charts::epsilon(&s.structure, &samples));
+        }
+        Ok(_) => body.push_str("<p>nothing logged yet</p>"),
+        Err(e) => {
+            let _ = write!(body, "<p>{}</p>", escape(e));
+        }
+    }
+    body.push_str(&crosscheck(&st));
+    let events = format!("/structure/{}/events", s.structure);
+    page(&s.structure, Some(&events), &body)
+}
+
+/// The line above the table: last set, sets tracked, ε against its bound, the model's
+/// adequacy.
+fn summary(s: &Shared, st: &Status) -> String {
     let inadequate = st.alerts.get(&(AlertKind::ModelInadequate, None));
+    let mut out = format!(
+        "<p>last set {}; <span id=\"sets\">{}</span> sets tracked",
+        age_text(last_set_age(s)),
+        st.accepted
+    );
     if let Some(e) = &st.last_estimate {
         let _ = write!(
-            body,
-            "<p>last set {}; misfit ε {:.3} against its bound {:.3}{}</p>",
-            age_text(last_set_age(s)),
+            out,
+            "; misfit ε {:.3} against its bound {:.3}{}",
             e.epsilon,
             e.epsilon_bound,
             match inadequate.map(|a| a.level) {
@@ -132,27 +244,81 @@ pub fn structure(c: &Console, s: &Shared, window: Window) -> String {
             }
         );
     }
-    body.push_str(&connection_table(&st));
-    let history = c
-        .cache
-        .lock()
-        .map_err(|_| ())
-        .and_then(|mut cache| cache.history(&c.log_dir, &s.structure).map_err(|_| ()));
-    match history {
-        Ok(h) => body.push_str(&chart(&s.structure, h, window, &st)),
-        Err(()) => body.push_str("<p>the history cannot be read from the logs</p>"),
+    out.push_str("</p>");
+    out
+}
+
+/// The structure drawn with each connection coloured by its change (frame models only).
+fn drawing(s: &Shared, st: &Status) -> String {
+    let (Some(sm), Some(e)) = (s.model.get(), &st.last_estimate) else {
+        return String::new();
+    };
+    let Some(g) = sm.0.as_ref().and_then(crate::draw::Geometry::of) else {
+        return String::new();
+    };
+    format!(
+        "<h2>The structure</h2>{}",
+        crate::draw::estimate_svg(&g, &sm.1, e, 720.0, 560.0)
+    )
+}
+
+/// Measured against model frequencies of the last estimate, with their MAC.
+fn frequencies(st: &Status) -> String {
+    let Some(e) = &st.last_estimate else {
+        return String::new();
+    };
+    let mut rows = String::new();
+    for (k, m) in e.modes.iter().enumerate() {
+        let _ = write!(
+            rows,
+            "<tr><td>{}</td><td>{:.3}</td><td>{:.3}</td><td>{:+.2}</td><td>{}</td><td>{}</td></tr>",
+            k + 1,
+            m.measured_hz,
+            m.model_hz,
+            100.0 * (m.model_hz - m.measured_hz) / m.measured_hz,
+            m.mac.map_or("–".into(), |v| format!("{v:.3}")),
+            m.paired_with,
+        );
     }
-    page(&s.structure, &body)
+    format!(
+        "<h2>Frequencies</h2><table><thead><tr><th>mode</th><th>measured, Hz</th>\
+         <th>model, Hz</th><th>model − measured, %</th><th>MAC</th><th>model mode</th>\
+         </tr></thead><tbody>{rows}</tbody></table>"
+    )
+}
+
+/// The last cross-check of mode matching against the Bayesian MAP.
+fn crosscheck(st: &Status) -> String {
+    let Some(x) = &st.last_crosscheck else {
+        return format!(
+            "<h2>Cross-check</h2><p>none yet{}</p>",
+            st.crosscheck_unavailable
+                .as_ref()
+                .map_or(String::new(), |w| format!(" ({})", escape(w)))
+        );
+    };
+    let verdict = match (&x.error, x.disagree.is_empty()) {
+        (Some(e), _) => format!("failed: {}", escape(e)),
+        (None, true) => "the two methods agree".into(),
+        (None, false) => format!("they disagree on {}", escape(&x.disagree.join(", "))),
+    };
+    format!(
+        "<h2>Cross-check</h2><p>{}: mode matching against the Bayesian MAP (σ_c {}): \
+         {verdict}; largest z {}</p>",
+        x.time.format("%Y-%m-%d %H:%M:%S UTC"),
+        x.sigma_c,
+        x.max_z.map_or("–".into(), |z| format!("{z:.2}"))
+    )
 }
 
 /// The connections' order on a page: in alarm, in warning, then the model's order.
 fn by_level(st: &Status, names: &[String]) -> Vec<usize> {
     let level = |n: &String| {
         let a = st.alerts.get(&(AlertKind::Loosening, Some(n.clone())));
-        level_value(a.map(|a| a.level))
+        AlertLevel::severity(a.map(|a| a.level))
     };
     let mut order: Vec<usize> = (0..names.len()).collect();
-    order.sort_by_key(|&i| (-level(&names[i]), i));
+    order.sort_by_key(|&i| (std::cmp::Reverse(level(&names[i])), i));
     order
 }
 
@@ -189,84 +355,6 @@ fn connection_table(st: &Status) -> String {
          <th>filtered</th><th>95 % band</th><th>baseline</th><th>loss, %</th></tr></thead>\
          <tbody>{rows}</tbody></table>"
     )
-}
-
-/// The filtered level of every parameter over `window`, with its band, the baseline and
-/// the alerts, connections in alarm first; one legend.
-fn chart(structure: &str, h: History, window: Window, st: &Status) -> String {
-    let Some(last) = h.samples.last().map(|s| s.time_ms) else {
-        return "<p>nothing logged yet</p>".into();
-    };
-    let h = match window.millis() {
-        Some(ms) => h.since(last - ms),
-        None => h,
-    };
-    let day0 = h.samples.first().map_or(last, |s| s.time_ms);
-    let days = |t: i64| (t - day0) as f64 / 86_400_000.0;
-    let x: Vec<f64> = h.samples.iter().map(|s| days(s.time_ms)).collect();
-    let mut panels = Vec::new();
-    for l in by_level(st, &h.names) {
-        let name = &h.names[l];
-        let col = |f: fn(&crate::daemon::history::Point) -> f32| -> Vec<f64> {
-            h.samples
-                .iter()
-                .map(|s| f64::from(f(&s.points[l])))
-                .collect()
-        };
-        let mut p = Panel::new(
-            &format!("{structure}: {name}"),
-            "time, days",
-            "θ, stiffness / nominal",
-            Scale::Linear,
-            Scale::Linear,
-        );
-        p.bands.push(Band {
-            label: "95 % band of the filtered level".into(),
-            x: x.clone(),
-            lower: col(|p| p.lower95),
-            upper: col(|p| p.upper95),
-        });
-        p.series
-            .push(Series::trace("filtered", x.clone(), col(|p| p.level)).with_color("#1f77b4"));
-        if let Some(b) = h
-            .samples
-            .last()
-            .map(|s| s.points[l].baseline)
-            .filter(|b| b.is_finite())
-        {
-            p.hlines.push((f64::from(b), "baseline".into()));
-        }
-        p.series.extend(marks(&h, name, &days, l));
-        panels.push(p);
-    }
-    figure_svg_with(&panels, 3, Legend::Once)
-}
-
-/// The alerts of connection `name` as points at the filtered level of the nearest sample.
-fn marks(h: &History, name: &str, days: &dyn Fn(i64) -> f64, l: usize) -> Vec<Series> {
-    [
-        ("warning", "#ff7f0e"),
-        ("alarm", "#d62728"),
-        ("cleared", "#2ca02c"),
-    ]
-    .into_iter()
-    .filter_map(|(level, color)| {
-        let at: Vec<(f64, f64)> = h
-            .marks
-            .iter()
-            .filter(|m| m.connection.as_deref() == Some(name) && m.level.as_str() == level)
-            .filter_map(|m| {
-                let i = h.samples.partition_point(|s| s.time_ms < m.time_ms);
-                let s = h.samples.get(i.min(h.samples.len().checked_sub(1)?))?;
-                Some((days(m.time_ms), f64::from(s.points[l].level)))
-            })
-            .collect();
-        (!at.is_empty()).then(|| {
-            let (x, y) = at.into_iter().unzip();
-            Series::points(level, x, y).with_color(color)
-        })
-    })
-    .collect()
 }
 
 #[cfg(test)]

@@ -161,8 +161,15 @@ impl Fetched {
             .max()
     }
 
-    fn counts(&self, epoch: u64, owner: &str) -> bool {
-        self.epoch_owner(epoch) == Some(owner)
+    /// [`Fetched::epoch_owner`] of every epoch stored, computed once.
+    fn epoch_owners(&self) -> BTreeMap<u64, &str> {
+        let epochs = self.checkpoints.keys().map(|(e, _)| *e);
+        let epochs = epochs.chain(self.wal.keys().map(|(e, _, _)| *e));
+        let epochs: std::collections::BTreeSet<u64> = epochs.collect();
+        epochs
+            .into_iter()
+            .filter_map(|e| Some((e, self.epoch_owner(e)?)))
+            .collect()
     }
 
     /// The checkpoint to resume from (the latest epoch's) and the entries to handle after
@@ -170,11 +177,13 @@ impl Fetched {
     /// later epoch's. Entries without any checkpoint mean the checkpoint was lost (every
     /// owner writes one before its first entry): an error, not a fresh start.
     pub fn tail(&self) -> Result<(Option<&Checkpoint<TrackerState>>, Vec<&WalEntry>)> {
+        let owners = self.epoch_owners();
+        let counts = |e: u64, o: &str| owners.get(&e) == Some(&o);
         let checkpoint = self
             .checkpoints
             .iter()
             .rev()
-            .find(|((e, o), _)| self.counts(*e, o));
+            .find(|((e, o), _)| counts(*e, o));
         let from = match checkpoint {
             Some((_, c)) => {
                 let f = c.fleet.as_ref().expect("read_value checks the position");
@@ -189,7 +198,7 @@ impl Fetched {
         let tail = self
             .wal
             .iter()
-            .filter(|((e, o, s), _)| (*e, *s) >= from && self.counts(*e, o))
+            .filter(|((e, o, s), _)| (*e, *s) >= from && counts(*e, o))
             .map(|((e, _, s), entry)| ((*e, *s), entry))
             .collect::<BTreeMap<_, _>>();
         Ok((checkpoint.map(|(_, c)| c), tail.into_values().collect()))

@@ -14,15 +14,6 @@ use super::{Shared, Status};
 use crate::contract::stiffness::ParameterEstimate;
 use crate::contract::{AlertKind, AlertLevel};
 
-/// An alert level as a number: 0 none or cleared, 1 warning, 2 alarm.
-pub fn level_value(level: Option<AlertLevel>) -> i64 {
-    match level {
-        Some(AlertLevel::Warning) => 1,
-        Some(AlertLevel::Alarm) => 2,
-        Some(AlertLevel::Cleared) | None => 0,
-    }
-}
-
 /// The loss of a parameter's filtered level, as a fraction: against the expectation under
 /// the set's conditions when the structure is normalised, else against the baseline.
 pub fn loss(p: &ParameterEstimate) -> Option<f64> {
@@ -72,7 +63,7 @@ fn parameter_gauges() -> [(&'static str, &'static str, ParamGetter); 7] {
             "Loosening alert level of the parameter: 0 none or cleared, 1 warning, 2 alarm.",
             |p, st| {
                 let a = st.alerts.get(&(AlertKind::Loosening, Some(p.name.clone())));
-                Some(level_value(a.map(|a| a.level)) as f64)
+                Some(f64::from(AlertLevel::severity(a.map(|a| a.level))))
             },
         ),
     ]
@@ -114,7 +105,7 @@ fn structure_gauges() -> [(&'static str, &'static str, StructureGetter); 4] {
             "Model-inadequacy alert level: 0 none or cleared, 1 warning, 2 alarm.",
             |_, st| {
                 let a = st.alerts.get(&(AlertKind::ModelInadequate, None));
-                Some(level_value(a.map(|a| a.level)) as f64)
+                Some(f64::from(AlertLevel::severity(a.map(|a| a.level))))
             },
         ),
         (

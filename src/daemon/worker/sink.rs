@@ -194,7 +194,7 @@ impl LiveSink {
             modal: matches!(output, Output::Modal(_)),
         };
         self.writer.send(job)?;
-        self.shared.with_status(|st| st.note(output));
+        self.shared.noted(output);
         Ok(())
     }
 }

@@ -369,6 +369,7 @@ pub fn replayed_with(
     read_all(out).unwrap()
 }
 
+mod console;
 mod deploy;
 mod field;
 mod fleet;

@@ -8,6 +8,7 @@ use std::time::{Duration, Instant};
 use serde_json::Value;
 use zenoh::Wait;
 
+use super::console::{Browser, assert_browser_shows_the_alarm, connection_rows};
 use super::*;
 use crate::suite::common::python_venv;
 use crate::suite::tracker::{make_scenario, make_scenario_with, payloads, tmp_dir};
@@ -34,8 +35,35 @@ fn daemon_over_zenoh_gives_what_replay_gives() {
     wait_status(&s, Duration::from_secs(30), "the daemon to answer", |_| {
         true
     });
-    let said = run_ok(publish(&rec, &daemon.endpoint, &["--rate", "0"]));
-    assert!(said.contains("published 1200 modal sets"), "{said}");
+    // All but the last set; the console in a browser; then the last set, live.
+    let said = run_ok(publish(
+        &rec,
+        &daemon.endpoint,
+        &["--rate", "0", "--count", "1199"],
+    ));
+    assert!(said.contains("published 1199 modal sets"), "{said}");
+    wait_status(&s, Duration::from_secs(300), "1199 sets tracked", |v| {
+        v["sets"]["accepted"].as_u64().unwrap() >= 1199
+    });
+    let shot = d.join("console.png");
+    let mut browser = Browser::open(&daemon.console, "/structure/lab-frame?window=all", &shot);
+    eprintln!("the console's screenshot: {}", shot.display());
+    assert_browser_shows_the_alarm(&browser);
+    let said = run_ok(publish(
+        &rec,
+        &daemon.endpoint,
+        &["--rate", "0", "--skip", "1199"],
+    ));
+    assert!(said.contains("published 1 modal sets"), "{said}");
+    let live = browser.wait_text("sets", "1200");
+    assert_eq!(
+        live["ok"], true,
+        "the page did not update: {}",
+        live["text"]
+    );
+    assert_eq!(connection_rows(live["dom"].as_str().unwrap()).len(), 17);
+    browser.assert_same_origin_and_clean(&live);
+    drop(browser);
     let st = wait_status(&s, Duration::from_secs(300), "1200 sets tracked", |v| {
         v["sets"]["accepted"].as_u64().unwrap() + v["sets"]["rejected"].as_u64().unwrap() >= 1200
     });
@@ -117,11 +145,11 @@ fn assert_history_reads_the_log(dir: &std::path::Path, estimates: &[Value], aler
     use boltwatch::daemon::history::Cache;
     let mut cache = Cache::new(64 << 20);
     let h = cache.history(dir, "lab-frame").unwrap();
-    assert_eq!(h.samples.len(), estimates.len());
-    assert_eq!(h.marks.len(), alerts.len());
+    assert_eq!(h.samples().count(), estimates.len());
+    assert_eq!(h.marks().count(), alerts.len());
     let last = estimates.last().unwrap();
-    let l = h.names.iter().position(|n| n == "C1L@J1L").unwrap();
-    let p = h.samples.last().unwrap().points[l];
+    let l = h.names().iter().position(|n| n == "C1L@J1L").unwrap();
+    let p = h.samples().last().unwrap().points[l];
     let c1 = &last["parameters"][l];
     assert_eq!(p.theta, c1["theta"].as_f64().unwrap() as f32);
     assert_eq!(
@@ -131,14 +159,14 @@ fn assert_history_reads_the_log(dir: &std::path::Path, estimates: &[Value], aler
     let bytes = cache.bytes();
     assert!(bytes > 0);
     // Compared as printed: a baseline not yet set is NaN, which equals nothing.
-    let same = |a: &boltwatch::daemon::history::History| format!("{a:?}") == format!("{h:?}");
+    let same = |a: &boltwatch::daemon::history::Logged| format!("{a:?}") == format!("{h:?}");
     assert!(same(&cache.history(dir, "lab-frame").unwrap()));
     assert_eq!(cache.bytes(), bytes, "read from the cache");
     let mut tiny = Cache::new(bytes - 1);
     assert!(same(&tiny.history(dir, "lab-frame").unwrap()));
     assert_eq!(tiny.bytes(), 0, "evicted");
-    let since = h.samples[h.samples.len() - 10].time_ms;
-    assert_eq!(h.clone().since(since).samples.len(), 10);
+    let since = h.samples().nth_back(9).unwrap().time_ms;
+    assert_eq!(h.samples_since(Some(since)).len(), 10);
 }
 
 /// The value of the metric line `name{labels}`.
@@ -245,7 +273,7 @@ pub fn http_response(addr: &str, path: &str) -> String {
 /// The console of a daemon fed the loosening recording: the overview lists the structure
 /// with its alarm; its page has every connection's row, C1L@J1L first and in alarm, and
 /// the chart; every response forbids other origins; an unknown structure, a path out of
-/// the console and a query that is not a window are refused.
+/// the console, a query that is not a window and a 6,000-byte query are refused.
 fn assert_console_shows_the_alarm(console: &str) {
     let home = http_get(console, "/");
     assert!(
@@ -253,7 +281,9 @@ fn assert_console_shows_the_alarm(console: &str) {
         "{home}"
     );
     assert!(
-        home.contains("<tr class=\"alarm\"><td><a href=\"/structure/lab-frame\">"),
+        home.contains(
+            "<tr class=\"alarm\" id=\"s-lab-frame\"><td><a href=\"/structure/lab-frame\">"
+        ),
         "{home}"
     );
     let page = http_get(console, "/structure/lab-frame?window=all");
@@ -271,12 +301,14 @@ fn assert_console_shows_the_alarm(console: &str) {
             "a request to another origin: {other}"
         );
     }
+    let long_query = format!("/structure/lab-frame?window={}", "9".repeat(6000));
     for (path, status) in [
         ("/structure/other", "404"),
         ("/structure/..%2F..%2Fetc%2Fpasswd", "404"),
         ("/../../etc/passwd", "404"),
         ("/structure/lab-frame?window=1y", "400"),
         ("/structure/lab-frame?window=24h&x=y", "400"),
+        (long_query.as_str(), "400"),
     ] {
         let r = http_response(console, path);
         assert!(r.starts_with(&format!("HTTP/1.1 {status}")), "{path}: {r}");
