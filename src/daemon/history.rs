@@ -160,7 +160,15 @@ pub struct Cache {
     parts: HashMap<String, PartRead>,
 }
 
-type PartRead = ((PathBuf, u64, Option<std::time::SystemTime>), Arc<History>);
+/// What was read of a file being written.
+struct PartRead {
+    path: PathBuf,
+    /// Its length and modification time then.
+    stamp: (u64, Option<std::time::SystemTime>),
+    /// The messages read (of every topic).
+    messages: usize,
+    history: Arc<History>,
+}
 
 impl Cache {
     pub fn new(max_bytes: usize) -> Self {
@@ -176,7 +184,12 @@ impl Cache {
     /// The bytes the cache holds now: the closed files' histories (within the bound) and,
     /// per structure, the file being written (bounded by the logs' rotation size).
     pub fn bytes(&self) -> usize {
-        self.bytes + self.parts.values().map(|(_, h)| h.bytes()).sum::<usize>()
+        self.bytes
+            + self
+                .parts
+                .values()
+                .map(|p| p.history.bytes())
+                .sum::<usize>()
     }
 
     /// `structure`'s history from its log files in `dir`, oldest first.
@@ -203,6 +216,9 @@ impl Cache {
         let mut h = History::default();
         for_each_message(path, |m| h.add(structure, &m))
             .with_context(|| format!("reading {}", path.display()))?;
+        // It never grows again: hold what it uses (the bound counts that).
+        h.samples.shrink_to_fit();
+        h.marks.shrink_to_fit();
         let h = Arc::new(h);
         self.bytes += h.bytes();
         self.files
@@ -211,20 +227,39 @@ impl Cache {
         Ok(h)
     }
 
-    /// The file being written: read again when its length or time changed since the last
-    /// read (it only grows), else the last read's.
+    /// The file being written: when its length or time changed since the last read (it
+    /// only grows), the messages after those already read are added to what they gave;
+    /// else the last read's history.
     fn part(&mut self, path: &Path, structure: &str) -> Result<Arc<History>> {
         let meta =
             std::fs::metadata(path).with_context(|| format!("reading {}", path.display()))?;
         let stamp = (meta.len(), meta.modified().ok());
-        if let Some(((p, len, time), h)) = self.parts.get(structure)
-            && p == path
-            && (*len, *time) == stamp
-        {
-            return Ok(h.clone());
+        let (mut h, seen) = match self.parts.remove(structure) {
+            Some(p) if p.path == path && p.stamp == stamp => {
+                let h = p.history.clone();
+                self.parts.insert(structure.to_string(), p);
+                return Ok(h);
+            }
+            Some(p) if p.path == path => (p.history, p.messages),
+            _ => (Arc::new(History::default()), 0),
+        };
+        let (messages, _) =
+            read_tolerant(path).with_context(|| format!("reading {}", path.display()))?;
+        if messages.len() < seen {
+            // Not the file read before (it only grows): read it afresh.
+            h = Arc::new(History::default());
         }
-        let h = Arc::new(read_part(path, structure)?);
-        let read = ((path.to_path_buf(), stamp.0, stamp.1), h.clone());
+        let from = if messages.len() < seen { 0 } else { seen };
+        let grown = Arc::make_mut(&mut h);
+        for m in &messages[from..] {
+            grown.add(structure, m)?;
+        }
+        let read = PartRead {
+            path: path.to_path_buf(),
+            stamp,
+            messages: messages.len(),
+            history: h.clone(),
+        };
         self.parts.insert(structure.to_string(), read);
         Ok(h)
     }
@@ -245,17 +280,6 @@ impl Cache {
             }
         }
     }
-}
-
-/// The file being written, up to its last complete chunk.
-fn read_part(path: &Path, structure: &str) -> Result<History> {
-    let (messages, _) =
-        read_tolerant(path).with_context(|| format!("reading {}", path.display()))?;
-    let mut h = History::default();
-    for m in &messages {
-        h.add(structure, m)?;
-    }
-    Ok(h)
 }
 
 /// `structure`'s log files in `dir` in the order they were written, the one being

@@ -279,6 +279,18 @@ impl Console {
         all.iter().find(|s| s.structure == name).cloned()
     }
 
+    /// The page of structure `name` over `window` (`None`: not watched), as
+    /// `/structure/<name>` serves it.
+    pub fn structure_page(&self, name: &str, window: Window) -> Option<String> {
+        let shared = self.watched_structure(name)?;
+        Some(pages::structure(self, &shared, window))
+    }
+
+    /// The bytes the history cache holds now.
+    pub fn cache_bytes(&self) -> usize {
+        self.cache.lock().map_or(0, |c| c.bytes())
+    }
+
     /// Each structure watched with the number of outputs it has published.
     fn outputs_so_far(&self) -> Vec<(String, u64)> {
         let all = self.watched.read().map(|v| v.clone()).unwrap_or_default();
