@@ -21,6 +21,9 @@ pub struct Point {
     pub lower95: f32,
     pub upper95: f32,
     pub baseline: f32,
+    /// θ expected of a healthy structure under the set's conditions (normalised
+    /// structures).
+    pub expected: f32,
 }
 
 /// One estimate: its set's time (ms since the Unix epoch) and its parameters, in the
@@ -104,6 +107,7 @@ impl History {
                 lower95: p.filtered.lower95 as f32,
                 upper95: p.filtered.upper95 as f32,
                 baseline: nan(p.baseline),
+                expected: nan(p.normalised.as_ref().map(|n| n.expected)),
             })
             .collect();
         self.samples.push(Sample {

@@ -43,7 +43,8 @@ fn day_axis(samples: &[&Sample]) -> impl Fn(i64) -> f64 {
 }
 
 /// The filtered level of each parameter in `order` over `samples`, with its 95 % band, the
-/// baseline and the alerts; one panel each, one legend.
+/// baseline, the level expected under the conditions (when the structure normalises) and
+/// the alerts; one panel each, one legend.
 pub fn levels(structure: &str, h: &Logged, samples: &[&Sample], order: &[usize]) -> String {
     let days = day_axis(samples);
     let names = h.names();
@@ -69,6 +70,11 @@ pub fn levels(structure: &str, h: &Logged, samples: &[&Sample], order: &[usize])
             lower: col(|p| p.lower95),
             upper: col(|p| p.upper95),
         });
+        let expected = col(|p| p.expected);
+        if expected.iter().any(|v| v.is_finite()) {
+            let e = Series::trace("expected under the conditions", x.clone(), expected);
+            p.series.push(e.with_color("#7f7f7f"));
+        }
         p.series
             .push(Series::trace("filtered", x, col(|p| p.level)).with_color("#1f77b4"));
         if let Some(b) = samples
@@ -184,6 +190,7 @@ mod tests {
             lower95: level - 0.1,
             upper95: level + 0.1,
             baseline: 1.0,
+            expected: f32::NAN,
         };
         Sample {
             time_ms: t,
@@ -211,6 +218,33 @@ mod tests {
         assert!(keep.contains(&7_777));
         assert!(keep.windows(2).all(|w| w[0] < w[1]));
         assert_eq!(keep.first(), Some(&0));
+    }
+
+    #[test]
+    fn the_expected_level_is_drawn_only_when_the_structure_normalises() {
+        let history = |expected: f32| {
+            let mut samples: Vec<Sample> = (0..5).map(|t| sample(t * 60_000, 1.0)).collect();
+            samples
+                .iter_mut()
+                .for_each(|s| s.points[0].expected = expected);
+            Logged {
+                files: vec![std::sync::Arc::new(crate::daemon::history::History {
+                    names: vec!["C1".into()],
+                    samples,
+                    marks: Vec::new(),
+                })],
+            }
+        };
+        for (expected, drawn) in [(0.98, true), (f32::NAN, false)] {
+            let h = history(expected);
+            let svg = levels("s", &h, &h.samples_since(None), &[0]);
+            assert!(svg.contains("s: C1"));
+            assert_eq!(
+                svg.contains("expected under the conditions"),
+                drawn,
+                "{expected}"
+            );
+        }
     }
 
     #[test]
