@@ -7,6 +7,7 @@ pub mod modal;
 pub mod model;
 pub mod normalisation;
 pub mod oma;
+pub mod plan;
 pub mod simulate;
 pub mod stats;
 pub mod updating;

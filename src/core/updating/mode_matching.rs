@@ -20,6 +20,7 @@
 //! so ε(θ) is piecewise smooth; a trial is accepted only if ε decreases.
 
 mod gauss_newton;
+pub(crate) use gauss_newton::covariance_from_jacobian;
 mod types;
 
 use faer::Mat;
@@ -31,8 +32,8 @@ use super::residual::{Evaluation, Evaluator};
 use crate::core::model::Model;
 pub use gauss_newton::FirstOrder;
 use gauss_newton::{
-    FreeStep, cholesky_step, clipped, covariance_from_jacobian, free_gauss_newton,
-    gauss_newton_step, normal_equations, step_in_std, step_within_bounds, within_std,
+    FreeStep, cholesky_step, clipped, free_gauss_newton, gauss_newton_step, normal_equations,
+    step_in_std, step_within_bounds, within_std,
 };
 pub use types::{
     BoundStep, FinalStep, IterationRecord, ModeMatchingOptions, ModeMatchingResult, ProgressFn,

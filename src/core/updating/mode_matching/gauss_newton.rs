@@ -13,7 +13,7 @@ use crate::core::updating::residual::Evaluation;
 
 /// Covariance (15) from the whitened Jacobian at `ev` (see
 /// [`super::ModeMatching::covariance`]).
-pub(super) fn covariance_from_jacobian(
+pub(crate) fn covariance_from_jacobian(
     jac: &Mat<f64>,
     data: &MeasuredData,
     ev: &Evaluation,
