@@ -3,8 +3,8 @@
 use std::process::ExitCode;
 
 use boltwatch::commands::{
-    diagnose, export, fleet, identify, modes, normalisation, publish, replay, report, router, run,
-    scenario, simulate, sweep, update,
+    diagnose, export, fleet, identify, modes, normalisation, plan, publish, replay, report, router,
+    run, scenario, simulate, sweep, update,
 };
 use clap::{Parser, Subcommand};
 
@@ -53,6 +53,9 @@ enum Command {
     ExportMatrices(export::ExportArgs),
     /// Identify modal sets, with uncertainties, from a raw vibration record (SSI-COV).
     Identify(identify::IdentifyArgs),
+    /// Before installing: which connections the channels and modes let the tracker watch,
+    /// the smallest loosening each will catch, and which sensors to add.
+    Plan(plan::PlanArgs),
     /// What a tracker learned of its structure's seasons (show), or learn it again from a
     /// recording between two times (learn).
     #[command(subcommand)]
@@ -79,6 +82,7 @@ fn main() -> ExitCode {
         Command::ExportMatrices(a) => export::run(a),
         Command::Identify(a) => identify::run(a),
         Command::Normalisation(a) => normalisation::run(a),
+        Command::Plan(a) => plan::run(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

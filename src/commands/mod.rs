@@ -10,6 +10,7 @@ pub mod identify_plot;
 pub mod inputs;
 pub mod modes;
 pub mod normalisation;
+pub mod plan;
 pub mod progress;
 pub mod publish;
 pub mod replay;

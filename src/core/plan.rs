@@ -15,6 +15,7 @@
 //! directly at what the tracker needs: every connection resolved.
 
 use anyhow::{Context, Result, bail};
+use faer::Mat;
 
 use crate::core::modal::solver_for;
 use crate::core::model::{Model, ParameterKind};
@@ -29,6 +30,10 @@ pub struct Planner {
     theta0: Vec<f64>,
     modes: Vec<SimulatedMode>,
     noise: Noise,
+    /// Per mode, the RMS of its shape over the installed channels, when set: every
+    /// channel's shape σ is then the NSD times it (a sensor added is as noisy as those
+    /// installed), not the NSD times the RMS over whichever channels are measured.
+    reference_rms: Option<Vec<f64>>,
     evaluator: Evaluator,
 }
 
@@ -71,12 +76,43 @@ impl Planner {
             theta0,
             modes,
             noise,
+            reference_rms: None,
             evaluator,
         })
     }
 
+    /// States every channel's shape σ against the RMS of each mode over `installed`:
+    /// adding a channel then adds information and takes none from the others.
+    pub fn with_reference(mut self, installed: &[usize]) -> Self {
+        let rms = self
+            .modes
+            .iter()
+            .map(|m| {
+                let sum: f64 = installed.iter().map(|&c| m.shape[c] * m.shape[c]).sum();
+                (sum / installed.len().max(1) as f64).sqrt()
+            })
+            .collect();
+        self.reference_rms = Some(rms);
+        self
+    }
+
     pub fn model(&self) -> &Model {
         &self.model
+    }
+
+    pub fn noise(&self) -> Noise {
+        self.noise
+    }
+
+    /// The frequency of mode `k` (0-based) at the nominal parameters, Hz.
+    pub fn frequency_hz(&self, k: usize) -> f64 {
+        self.modes[k].frequency_hz
+    }
+
+    /// Whether channel `c` reads anything of `modes` (a channel at a support reads
+    /// nothing, and would only shrink the RMS the shape σ are stated against).
+    pub fn moves(&self, c: usize, modes: &[usize]) -> bool {
+        modes.iter().any(|&k| self.modes[k].shape[c].abs() > 1e-9)
     }
 
     /// The data a set identified at `channels` with the modes `modes` (indices into the
@@ -95,7 +131,10 @@ impl Planner {
                     frequency_cov: Some(self.noise.frequency_cov),
                     shape: (!shape.is_empty()).then_some(shape),
                     shape_nsd: Some(self.noise.shape_nsd),
-                    shape_std: None,
+                    shape_std: self
+                        .reference_rms
+                        .as_ref()
+                        .map(|rms| vec![self.noise.shape_nsd * rms[k]; channels.len()]),
                 }
             })
             .collect();
@@ -105,6 +144,15 @@ impl Planner {
     /// σ of every parameter per set with `channels` and `modes` (NaN for all when the
     /// data do not determine every parameter: the Fisher information is singular).
     pub fn sigma(&mut self, channels: &[usize], modes: &[usize]) -> Result<Vec<f64>> {
+        Ok(self.sigma_and_correlation(channels, modes)?.0)
+    }
+
+    /// [`Planner::sigma`] and the parameters' correlation matrix (`None` when singular).
+    pub fn sigma_and_correlation(
+        &mut self,
+        channels: &[usize],
+        modes: &[usize],
+    ) -> Result<(Vec<f64>, Option<Mat<f64>>)> {
         let data = self.data(channels, modes);
         let ev = self
             .evaluator
@@ -112,10 +160,12 @@ impl Planner {
             .context("the model's modes at its nominal parameters")?;
         let jac = self.evaluator.jacobian(&self.model, &data, &ev)?;
         let p = self.model.n_params();
-        Ok(match covariance_from_jacobian(&jac, &data, &ev) {
-            Some(cov) => (0..p).map(|l| cov[(l, l)].max(0.0).sqrt()).collect(),
-            None => vec![f64::NAN; p],
-        })
+        let Some(cov) = covariance_from_jacobian(&jac, &data, &ev) else {
+            return Ok((vec![f64::NAN; p], None));
+        };
+        let sigma: Vec<f64> = (0..p).map(|l| cov[(l, l)].max(0.0).sqrt()).collect();
+        let corr = Mat::from_fn(p, p, |a, b| cov[(a, b)] / (sigma[a] * sigma[b]));
+        Ok((sigma, Some(corr)))
     }
 
     /// The worst relative σ (σ_l / θ0_l) over the connections' parameters (infinite when
@@ -281,6 +331,32 @@ mod tests {
                 (sample / p - 1.0).abs() < 0.2,
                 "{l}: sample {sample} against {p}"
             );
+        }
+    }
+
+    /// Against the installed channels' noise, a channel added only adds information: no σ
+    /// rises (to rounding), whichever channel it is. (Stated against the RMS of whatever is
+    /// measured, a loud channel would make every other one noisier.)
+    #[test]
+    fn with_a_reference_an_added_channel_never_raises_a_sigma() {
+        let model = lab_frame();
+        let n = model.channels().len();
+        let modes: Vec<usize> = (0..9).collect();
+        let installed: Vec<usize> = (0..n).step_by(2).collect();
+        let mut planner = Planner::new(model, 9, NOISE)
+            .unwrap()
+            .with_reference(&installed);
+        let before = planner.sigma(&installed, &modes).unwrap();
+        for extra in (1..n).step_by(2) {
+            let mut more = installed.clone();
+            more.push(extra);
+            let after = planner.sigma(&more, &modes).unwrap();
+            for (l, (a, b)) in after.iter().zip(&before).enumerate() {
+                assert!(
+                    *a <= b * (1.0 + 1e-9),
+                    "channel {extra}, parameter {l}: {b} → {a}"
+                );
+            }
         }
     }
 

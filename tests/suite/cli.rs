@@ -424,3 +424,63 @@ fn event_day_without_an_event_names_the_scenario() {
         assert!(!out.exists(), "{name}: a recording was written");
     }
 }
+
+/// `plan` on the lab frame: plan.json with every connection judged before and after two
+/// added sensors (no σ higher after), and the drawing; bad input exits 2 naming it.
+#[test]
+fn plan_judges_every_connection_and_refuses_bad_input() {
+    let model = model_path("lab-frame");
+    let out = tmp("plan");
+    let o = boltwatch(&[
+        "plan",
+        "--model",
+        &model,
+        "--add",
+        "2",
+        "-o",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let plan = read_json(&out.join("plan.json"));
+    assert_eq!(plan["schema"], "boltwatch.plan.v1");
+    let rows = |key: &str| plan[key]["connections"].as_array().unwrap().clone();
+    let (before, after) = (rows("current"), rows("planned"));
+    assert_eq!(before.len(), 16, "the lab frame's 16 connections");
+    for (b, a) in before.iter().zip(&after) {
+        let (sb, sa) = (
+            b["sigma_per_set"].as_f64().unwrap(),
+            a["sigma_per_set"].as_f64().unwrap(),
+        );
+        assert!(sa <= sb * (1.0 + 1e-9), "{}: {sb} → {sa}", b["name"]);
+        let warn = b["detectable_warning"].as_f64().unwrap();
+        assert!(warn > 0.10 && warn < 1.0, "{warn}");
+    }
+    assert_eq!(plan["added"].as_array().unwrap().len(), 2);
+    assert_eq!(plan["planned"]["channels"].as_array().unwrap().len(), 44);
+    assert!(
+        std::fs::read_to_string(out.join("plan.svg"))
+            .unwrap()
+            .contains("<svg")
+    );
+
+    let installed = tmp("installed.toml");
+    std::fs::write(&installed, "channels = [\"C1L.1\", \"nowhere.x\"]\n").unwrap();
+    let o_dir = tmp("plan-bad");
+    let dir = o_dir.to_str().unwrap();
+    let cases: [(&[&str], &str); 3] = [
+        (
+            &["--channels", installed.to_str().unwrap()],
+            "`nowhere.x` is not a channel",
+        ),
+        (&["--budget", "100000"], "--budget 100000"),
+        (&["--modes", "0"], "--modes"),
+    ];
+    for (extra, says) in cases {
+        let mut args = vec!["plan", "--model", &model, "-o", dir];
+        args.extend_from_slice(extra);
+        let o = boltwatch(&args);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{extra:?}: {err}");
+        assert!(err.contains(says), "{extra:?}: {err}");
+    }
+}

@@ -199,6 +199,7 @@ fn every_command_option_is_documented_with_its_default() {
         "export-matrices",
         "identify",
         "normalisation",
+        "plan",
     ];
     for command in commands {
         let mut help = BTreeMap::new();
