@@ -14,6 +14,7 @@ pub mod accel;
 pub mod alerts;
 mod config;
 pub mod crosscheck;
+pub mod detectability;
 pub mod drift;
 mod fit;
 pub mod normalise;

@@ -467,13 +467,15 @@ fn plan_judges_every_connection_and_refuses_bad_input() {
     std::fs::write(&installed, "channels = [\"C1L.1\", \"nowhere.x\"]\n").unwrap();
     let o_dir = tmp("plan-bad");
     let dir = o_dir.to_str().unwrap();
-    let cases: [(&[&str], &str); 3] = [
+    let cases: [(&[&str], &str); 5] = [
         (
             &["--channels", installed.to_str().unwrap()],
             "`nowhere.x` is not a channel",
         ),
         (&["--budget", "100000"], "--budget 100000"),
         (&["--modes", "0"], "--modes"),
+        (&["--per-day", "0"], "--per-day 0"),
+        (&["--verify", "5"], "commissioning sets"),
     ];
     for (extra, says) in cases {
         let mut args = vec!["plan", "--model", &model, "-o", dir];

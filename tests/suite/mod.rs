@@ -16,6 +16,7 @@ mod measured;
 mod modal_set;
 mod mode_matching;
 mod oma;
+mod plan;
 mod reference;
 mod replay_cli;
 mod seasons;
