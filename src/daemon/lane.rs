@@ -239,6 +239,9 @@ fn recover(
         }
     };
     crate::io::model::adopt_law(&mut tracker)?;
+    for (connection, why) in tracker.alerts_off() {
+        tracing::warn!(structure = s.name, connection, "alerts off: {why}");
+    }
     tracker.set_max_future(Some(chrono::TimeDelta::milliseconds(
         (d.max_future_s * 1e3).round() as i64,
     )));

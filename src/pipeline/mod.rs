@@ -199,8 +199,11 @@ fn alerts_off(
             (is_connection[l] && (rel.is_nan() || rel > thresholds.max_std)).then(|| {
                 format!(
                     "mean per-set σ {rel:.2} of the baseline over the commissioning sets \
-                     (> max_std {}): the data do not resolve this connection on its own",
-                    thresholds.max_std
+                     (> max_std {}): the data do not resolve this connection on its own; \
+                     alerts come on with a per-set σ {:.1} times smaller, from more sensors \
+                     or modes (`boltwatch plan` names which)",
+                    thresholds.max_std,
+                    rel / thresholds.max_std
                 )
             })
         })
@@ -377,6 +380,16 @@ impl Tracker {
 
     pub fn state(&self) -> &TrackerState {
         &self.state
+    }
+
+    /// The connections whose alerts are off after commissioning, each with why and what
+    /// would turn them on (empty before the baseline is set).
+    pub fn alerts_off(&self) -> Vec<(String, String)> {
+        alerts_off(&self.cfg.alerts, &self.is_connection, &self.state)
+            .into_iter()
+            .enumerate()
+            .filter_map(|(l, why)| Some((self.model.parameters()[l].name.clone(), why?)))
+            .collect()
     }
 
     /// The checkpoint of the current state, with the eigen solver's warm-start block: a
