@@ -47,7 +47,7 @@ fn assess(
     modes: &[usize],
 ) -> Result<Value> {
     let (sigma, corr) = planner.sigma_and_correlation(channels, modes)?;
-    let params = planner.connections();
+    let params = planner.watched().to_vec();
     let model = planner.model();
     let (d, t) = (&judge.rules, &judge.rules.thresholds);
     let mut rows = Vec::new();
@@ -71,7 +71,7 @@ fn assess(
         "channels": channels.iter().map(|&c| model.channels()[c].name.clone()).collect::<Vec<_>>(),
         "worst_sigma_per_set": finite(worst),
         "connections": rows,
-        "resolved_together": clusters(model, &planner.connections(), &corr, 0.9),
+        "resolved_together": clusters(model, planner.watched(), &corr, 0.9),
     }))
 }
 
@@ -159,6 +159,7 @@ pub(super) fn document(
     Ok(json!({
         "schema": "boltwatch.plan.v1",
         "structure": planner.model().name,
+        "watched": planner.watched_noun(),
         "modes": modes.len(),
         "noise": {"frequency_cov": planner.noise().frequency_cov, "shape_nsd": planner.noise().shape_nsd},
         "sets": judge.sets,
@@ -231,10 +232,11 @@ pub(super) fn summary(doc: &Value) -> String {
             .filter_map(|c| c["name"].as_str())
             .collect();
         format!(
-            "{key}: {} channels, worst σ per set {:.3}, {} connections not watchable at {:.0} % {:?}",
+            "{key}: {} channels, worst σ per set {:.3}, {} {} not watchable at {:.0} % {:?}",
             a["channels"].as_array().map_or(0, Vec::len),
             a["worst_sigma_per_set"].as_f64().unwrap_or(f64::INFINITY),
             off.len(),
+            doc["watched"].as_str().unwrap_or("connections"),
             100.0 * doc["target_loss"].as_f64().unwrap_or(0.0),
             off
         )

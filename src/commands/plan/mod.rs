@@ -8,11 +8,11 @@ use anyhow::{Context, Result, bail};
 
 mod assess;
 mod draw;
+mod places;
 mod verify;
 
 use super::write_json;
-use crate::core::model::Model;
-use crate::core::model::spec::{ChannelSpec, ModelSpec};
+use crate::core::plan::places::WithCandidates;
 use crate::core::plan::{Added, Criterion, Planner};
 use crate::core::simulate::Noise;
 use crate::pipeline::detectability::Detectability;
@@ -21,15 +21,17 @@ use draw::drawing;
 
 #[derive(Debug, clap::Args)]
 pub struct PlanArgs {
-    /// The model file (TOML frame or space frame, or `bundled:<name>`).
+    /// The model: a model file (plane, space or solid frame, or `bundled:<name>`) or an
+    /// imported model's `model.json`.
     #[arg(long)]
     pub model: PathBuf,
     /// The channels installed now: a TOML file `channels = ["name", …]` (default: every
     /// channel of the model).
     #[arg(long)]
     pub channels: Option<PathBuf>,
-    /// Where sensors may be added: `nodes` (translations at the named nodes), `dofs`
-    /// (translations at every node of the mesh) or `all` (rotations too).
+    /// Where sensors may be added: `nodes` (translations at the named nodes; a solid's
+    /// beams at every sixth; an imported model's named locations), `dofs` (translations at
+    /// every node of the mesh; an imported model's every DOF) or `all` (rotations too).
     #[arg(long, default_value = "dofs")]
     pub candidates: Candidates,
     /// Add exactly this many sensors.
@@ -84,12 +86,16 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     if args.sets == 0 {
         bail!("--sets 0: the filter needs at least one set");
     }
-    let installed = crate::io::model::load_spec(&args.model)?;
-    let (spec, candidates) = with_candidates(&installed, args.candidates)?;
-    let model =
-        Model::from_spec(&spec).with_context(|| format!("model file {}", args.model.display()))?;
+    let (
+        WithCandidates {
+            model,
+            spec,
+            candidates,
+        },
+        installed,
+    ) = places::planned_model(&args.model, args.candidates)?;
     crate::core::numerics_for(&model);
-    let current = current_channels(&model, args.channels.as_deref(), &installed)?;
+    let current = places::current_channels(&model, args.channels.as_deref(), &installed)?;
     let mut planner = Planner::new(model, args.modes, noise)?.with_reference(&current);
     let modes: Vec<usize> = (0..args.modes).collect();
     let candidates: Vec<usize> = candidates
@@ -123,7 +129,10 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     write_json(&args.out.join("plan.json"), &doc)?;
-    if let Some(svg) = drawing(&spec, &planner, &doc, &planned, &current) {
+    let svg = spec
+        .as_ref()
+        .and_then(|spec| drawing(spec, &planner, &doc, &planned, &current));
+    if let Some(svg) = svg {
         let file = args.out.join("plan.svg");
         std::fs::write(&file, svg).with_context(|| format!("cannot write {}", file.display()))?;
     }
@@ -141,119 +150,6 @@ fn parse_noise(s: &str) -> Result<Noise> {
         frequency_cov,
         shape_nsd,
     })
-}
-
-/// The model file with a channel added at every candidate place not measured already, and
-/// the candidates' names. Only frame models (plane and space) can take new channels.
-fn with_candidates(spec: &ModelSpec, kind: Candidates) -> Result<(ModelSpec, Vec<String>)> {
-    let mut spec = spec.clone();
-    let (places, dirs): (Vec<String>, &[&str]) = if let Some(s) = &spec.space_frame {
-        let meshes = s.members.iter().map(|m| (m.name.as_str(), m.elements));
-        let dirs: &[&str] = match kind {
-            Candidates::All => &["x", "y", "z", "rx", "ry", "rz"],
-            _ => &["x", "y", "z"],
-        };
-        (
-            places(s.nodes.iter().map(|n| n.name.as_str()), meshes, kind),
-            dirs,
-        )
-    } else if !spec.members.is_empty() {
-        let meshes = spec.members.iter().map(|m| (m.name.as_str(), m.elements));
-        let dirs: &[&str] = match kind {
-            Candidates::All => &["x", "y", "rz"],
-            _ => &["x", "y"],
-        };
-        (
-            places(spec.nodes.iter().map(|n| n.name.as_str()), meshes, kind),
-            dirs,
-        )
-    } else {
-        bail!(
-            "{}: sensors can be added to frame models (plane or space) only; \
-             solids and imported matrices are planned over their own channels",
-            spec.name
-        );
-    };
-    let (supports, restrain) = match &spec.space_frame {
-        Some(s) => (s.supports.clone(), s.restrain.clone()),
-        None => (spec.supports.clone(), Vec::new()),
-    };
-    // A DOF a support or the frame's restraint fixes reads nothing: no sensor there.
-    let fixed = |at: &str, dir: &str| {
-        restrain.iter().any(|r| r == dir)
-            || supports
-                .iter()
-                .any(|s| s.node == at && s.fix.as_ref().is_none_or(|f| f.iter().any(|d| d == dir)))
-    };
-    let channels = match &mut spec.space_frame {
-        Some(s) => &mut s.channels,
-        None => &mut spec.channels,
-    };
-    let mut names = Vec::new();
-    for at in &places {
-        for dir in dirs.iter().filter(|d| !fixed(at, d)) {
-            let name = format!("{at}.{dir}");
-            if !channels.iter().any(|c| c.name == name) {
-                channels.push(ChannelSpec {
-                    name: name.clone(),
-                    at: at.clone(),
-                    dir: dir.to_string(),
-                });
-            }
-            names.push(name);
-        }
-    }
-    Ok((spec, names))
-}
-
-/// The named nodes, and with `dofs` or `all` every interior node of each member's mesh
-/// (`<member>.<k>`).
-fn places<'a>(
-    nodes: impl Iterator<Item = &'a str>,
-    meshes: impl Iterator<Item = (&'a str, usize)>,
-    kind: Candidates,
-) -> Vec<String> {
-    let mut out: Vec<String> = nodes.map(str::to_string).collect();
-    if kind != Candidates::Nodes {
-        for (member, elements) in meshes {
-            out.extend((1..elements).map(|k| format!("{member}.{k}")));
-        }
-    }
-    out
-}
-
-/// The channels installed now: those of `--channels`, else the model file's own.
-fn current_channels(
-    model: &Model,
-    file: Option<&std::path::Path>,
-    spec: &ModelSpec,
-) -> Result<Vec<usize>> {
-    let names: Vec<String> = match file {
-        Some(path) => {
-            #[derive(serde::Deserialize)]
-            #[serde(deny_unknown_fields)]
-            struct Installed {
-                channels: Vec<String>,
-            }
-            let text = std::fs::read_to_string(path)
-                .with_context(|| format!("--channels: cannot read {}", path.display()))?;
-            let i: Installed =
-                toml::from_str(&text).with_context(|| format!("--channels {}", path.display()))?;
-            i.channels
-        }
-        None => match &spec.space_frame {
-            Some(s) => s.channels.iter().map(|c| c.name.clone()).collect(),
-            None => spec.channels.iter().map(|c| c.name.clone()).collect(),
-        },
-    };
-    names
-        .iter()
-        .map(|n| {
-            model.channel_index(n).with_context(|| {
-                format!("--channels: `{n}` is not a channel or a candidate place of the model")
-            })
-        })
-        .collect()
 }
 
 /// The channels to add: `--add N`, or with `--budget N` the fewest that make every

@@ -43,7 +43,7 @@ impl Check<'_> {
         }
         let (thetas, stds, last) = self.track(planner, cfg)?;
         let mut rows = Vec::new();
-        for (i, l) in planner.connections().into_iter().enumerate() {
+        for (i, l) in planner.watched().iter().copied().enumerate() {
             let p = &planner.model().parameters()[l];
             let x: Vec<f64> = thetas.iter().map(|t| t[l]).collect();
             let empirical = sample_std(&x) / p.nominal.abs();

@@ -201,6 +201,26 @@ impl Model {
     pub fn channel_index(&self, name: &str) -> Option<usize> {
         self.channels.iter().position(|c| c.name == name)
     }
+    /// This model with `extra` channels after its own (places a sensor could go: the
+    /// matrices are shared, not copied). A name already used, or a DOF out of range, is an
+    /// error naming it.
+    pub fn with_channels(&self, extra: Vec<Channel>) -> Result<Model, ModelError> {
+        let mut model = self.clone();
+        for c in extra {
+            let invalid = |reason: String| ModelError::Invalid {
+                field: format!("channels.{}", c.name),
+                reason,
+            };
+            if model.channel_index(&c.name).is_some() {
+                return Err(invalid("is defined twice".into()));
+            }
+            if let Some(&(i, _)) = c.dofs.iter().find(|(i, _)| *i >= self.n_dof()) {
+                return Err(invalid(format!("DOF {i} is out of range")));
+            }
+            model.channels.push(c);
+        }
+        Ok(model)
+    }
     /// The nominal rotational stiffness (N·m/rad) of the connections parameter `l` scales,
     /// when it scales connections that share one (what θ_l multiplies in an estimate).
     pub fn connection_stiffness(&self, l: usize) -> Option<f64> {

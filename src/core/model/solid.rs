@@ -66,25 +66,13 @@ pub(super) fn assemble(
     sf: &SolidFrameSpec,
     bayesian: &super::spec::BayesSpec,
 ) -> Result<Model, ModelError> {
-    validate(sf)?;
-    let parts = lay_out_parts(sf);
-    let interfaces = interfaces_of(&parts, sf.bays);
-    let mat = Material {
-        e: sf.material.E,
-        nu: sf.material.nu,
-        rho: sf.material.rho,
-    };
-    let fm = FaceMatch {
-        w: sf.beam.in_plane,
-        tol: 1e-9 * (sf.beam.length + sf.coupler.size),
-    };
-    let mut dofs = Dofs::new(&parts);
-    let mut joints = Joints::new(sf, &mat);
-    for at in &interfaces {
-        join(&parts, at, fm, &mut dofs, &mut joints)?;
-    }
-    dofs.own_translations(&parts);
-    let (labels, combos) = dofs.finish();
+    let Layout {
+        parts,
+        labels,
+        combos,
+        joints,
+        mat,
+    } = lay_out(sf)?;
     let n_dof = labels.len();
 
     let couplings: Vec<(usize, usize)> =
@@ -111,6 +99,46 @@ pub(super) fn assemble(
         bayesian.clone(),
     )
     .inspect(|m| debug_assert_eq!(m.n_dof(), n_dof))
+}
+
+/// A checked `[solid_frame]` laid out: its parts, its DOFs (labels, and where every mesh
+/// node's translations go), the joints' springs and connections, and the material.
+struct Layout {
+    parts: Vec<Part>,
+    labels: Vec<String>,
+    combos: Vec<Combos>,
+    joints: Joints,
+    mat: Material,
+}
+
+/// Checks a `[solid_frame]`, lays out its parts and joins them at the interfaces.
+fn lay_out(sf: &SolidFrameSpec) -> Result<Layout, ModelError> {
+    validate(sf)?;
+    let parts = lay_out_parts(sf);
+    let interfaces = interfaces_of(&parts, sf.bays);
+    let mat = Material {
+        e: sf.material.E,
+        nu: sf.material.nu,
+        rho: sf.material.rho,
+    };
+    let fm = FaceMatch {
+        w: sf.beam.in_plane,
+        tol: 1e-9 * (sf.beam.length + sf.coupler.size),
+    };
+    let mut dofs = Dofs::new(&parts);
+    let mut joints = Joints::new(sf, &mat);
+    for at in &interfaces {
+        join(&parts, at, fm, &mut dofs, &mut joints)?;
+    }
+    dofs.own_translations(&parts);
+    let (labels, combos) = dofs.finish();
+    Ok(Layout {
+        parts,
+        labels,
+        combos,
+        joints,
+        mat,
+    })
 }
 
 /// Checks the sizes, the material and the meshes' divisions of a `[solid_frame]`.
@@ -540,37 +568,98 @@ fn spring_matrices(springs: &[Spring]) -> Vec<Accumulator> {
 /// beam's length on its axis (the middle of its width and of its thickness; ties go to the
 /// lower node number), the three translations. A fixed sensor node is an error.
 fn sensor_channels(parts: &[Part], combos: &[Combos]) -> Result<Vec<Channel>, ModelError> {
+    let stations = |_: &Part| vec![1.0 / 3.0, 2.0 / 3.0];
     let mut channels = Vec::new();
-    for p in parts.iter().filter(|p| !p.name.starts_with('K')) {
-        let axis = beam_axis(&p.name);
-        let m = &p.mesh;
-        for (k, frac) in [(1, 1.0 / 3.0), (2, 2.0 / 3.0)] {
-            let target: [f64; 3] = std::array::from_fn(|r| {
-                m.origin[r] + if r == axis { frac } else { 0.5 } * m.size[r]
-            });
-            let dist = |n: usize| {
-                let x = m.coord(n);
-                (0..3).map(|r| (x[r] - target[r]).powi(2)).sum::<f64>()
-            };
-            let n = (0..m.nodes.len())
-                .min_by(|&a, &b| dist(a).total_cmp(&dist(b)))
-                .expect("a mesh has nodes");
-            for (r, d) in ["x", "y", "z"].iter().enumerate() {
-                let dofs = combos[p.first + n][r].clone();
-                if dofs.is_empty() {
-                    return Err(invalid(
-                        "solid_frame",
-                        format!("sensor {}.{k} is fixed", p.name),
-                    ));
-                }
-                channels.push(Channel {
-                    name: format!("{}.{k}.{d}", p.name),
-                    dofs,
-                });
+    for (p, k, frac) in beam_stations(parts, stations) {
+        let name = |d: &str| format!("{}.{}.{d}", p.name, k + 1);
+        let Some(at) = translations_at(p, combos, frac, name) else {
+            return Err(invalid(
+                "solid_frame",
+                format!("sensor {}.{} is fixed", p.name, k + 1),
+            ));
+        };
+        channels.extend(at);
+    }
+    Ok(channels)
+}
+
+/// Where a sensor could go on a `[solid_frame]`: the three translations on each beam's
+/// axis at every sixth of its length (`every_node` false) or at every element corner
+/// between its ends, named `<beam>@<fraction of its length>.<x|y|z>`; a place the model's
+/// own channels read already is left out.
+pub fn candidate_channels(
+    sf: &SolidFrameSpec,
+    every_node: bool,
+) -> Result<Vec<Channel>, ModelError> {
+    let Layout { parts, combos, .. } = lay_out(sf)?;
+    let own = sensor_channels(&parts, &combos)?;
+    let stations = |p: &Part| {
+        let n = if every_node {
+            p.mesh.div[beam_axis(&p.name)]
+        } else {
+            6
+        };
+        (1..n).map(|i| i as f64 / n as f64).collect()
+    };
+    let mut channels: Vec<Channel> = Vec::new();
+    for (p, _, frac) in beam_stations(&parts, stations) {
+        let name = |d: &str| format!("{}@{frac:.3}.{d}", p.name);
+        for c in translations_at(p, &combos, frac, name).unwrap_or_default() {
+            let read = |o: &Channel| o.dofs == c.dofs;
+            if !own.iter().any(read) && !channels.iter().any(read) {
+                channels.push(c);
             }
         }
     }
     Ok(channels)
+}
+
+/// Every beam's stations: the beam, the station's number and its fraction of the length.
+fn beam_stations<'a>(
+    parts: &'a [Part],
+    stations: impl Fn(&Part) -> Vec<f64> + 'a,
+) -> impl Iterator<Item = (&'a Part, usize, f64)> + 'a {
+    parts
+        .iter()
+        .filter(|p| !p.name.starts_with('K'))
+        .flat_map(move |p| {
+            stations(p)
+                .into_iter()
+                .enumerate()
+                .map(move |(k, f)| (p, k, f))
+        })
+}
+
+/// The three translations of beam `p` at the mesh node nearest to `frac` of its length on
+/// its axis, named by `name(direction)`; `None` when that node is fixed.
+fn translations_at(
+    p: &Part,
+    combos: &[Combos],
+    frac: f64,
+    name: impl Fn(&str) -> String,
+) -> Option<Vec<Channel>> {
+    let axis = beam_axis(&p.name);
+    let m = &p.mesh;
+    let target: [f64; 3] =
+        std::array::from_fn(|r| m.origin[r] + if r == axis { frac } else { 0.5 } * m.size[r]);
+    let dist = |n: usize| {
+        let x = m.coord(n);
+        (0..3).map(|r| (x[r] - target[r]).powi(2)).sum::<f64>()
+    };
+    let n = (0..m.nodes.len())
+        .min_by(|&a, &b| dist(a).total_cmp(&dist(b)))
+        .expect("a mesh has nodes");
+    ["x", "y", "z"]
+        .iter()
+        .enumerate()
+        .map(|(r, d)| {
+            let dofs = combos[p.first + n][r].clone();
+            (!dofs.is_empty()).then(|| Channel {
+                name: name(d),
+                dofs,
+            })
+        })
+        .collect()
 }
 
 /// The parameters [`PARAMETERS`], nominal 1, each scaling its connections.

@@ -17,6 +17,7 @@
 //! needs: every connection resolved well enough to be watched.
 
 pub mod baselines;
+pub mod places;
 
 use anyhow::{Context, Result, bail};
 use faer::Mat;
@@ -42,6 +43,8 @@ pub struct Planner {
     /// candidates (so the same cached sensitivities) whatever the channels and modes.
     eig: EigenPairs,
     evaluator: Evaluator,
+    /// [`Planner::watched`].
+    watched: Vec<usize>,
 }
 
 /// What a greedy step minimises, from the connections' relative σ per set: first the
@@ -106,7 +109,16 @@ impl Planner {
         let modes = simulate_modes(&model, &mut *solver, &theta0, n_modes, clean, &mut rng)?;
         let mut evaluator = Evaluator::new(&model)?;
         evaluator.set_pairing(Pairing::Misfit);
+        let connections: Vec<usize> = (0..model.n_params())
+            .filter(|&l| matches!(model.parameters()[l].kind, ParameterKind::Connections(_)))
+            .collect();
+        let watched = if connections.is_empty() {
+            (0..model.n_params()).collect()
+        } else {
+            connections
+        };
         let mut planner = Self {
+            watched,
             model,
             theta0,
             modes,
@@ -265,30 +277,40 @@ impl Planner {
         Ok((sigma, Some(corr)))
     }
 
-    /// The connections' parameters (indices into θ).
-    pub fn connections(&self) -> Vec<usize> {
-        (0..self.model.n_params())
-            .filter(|&l| {
-                matches!(
-                    self.model.parameters()[l].kind,
-                    ParameterKind::Connections(_)
-                )
-            })
-            .collect()
+    /// The parameters a plan must make watchable (indices into θ): the connections', or
+    /// every parameter of a model that has none (an imported model's matrices).
+    pub fn watched(&self) -> &[usize] {
+        &self.watched
     }
 
-    /// The connections' relative σ (σ_l / θ0_l; infinite where not determined).
+    /// What the watched parameters are: `connections`, or `parameters` for a model with
+    /// no connection parameters.
+    pub fn watched_noun(&self) -> &'static str {
+        let is_connection = |&l: &usize| {
+            matches!(
+                self.model.parameters()[l].kind,
+                ParameterKind::Connections(_)
+            )
+        };
+        if self.watched.iter().all(is_connection) {
+            "connections"
+        } else {
+            "parameters"
+        }
+    }
+
+    /// The watched parameters' relative σ (σ_l / θ0_l; infinite where not determined).
     pub fn relative(&self, sigma: &[f64]) -> Vec<f64> {
-        self.connections()
-            .into_iter()
-            .map(|l| {
+        self.watched
+            .iter()
+            .map(|&l| {
                 let rel = sigma[l] / self.theta0[l].abs();
                 if rel.is_finite() { rel } else { f64::INFINITY }
             })
             .collect()
     }
 
-    /// The worst relative σ over the connections (infinite when one is not determined),
+    /// The worst relative σ of a watched parameter (infinite when one is not determined),
     /// and the sum of their relative variances.
     pub fn worst(&self, sigma: &[f64]) -> (f64, f64) {
         let rel = self.relative(sigma);

@@ -1,4 +1,6 @@
 use super::*;
+use crate::core::model::Channel;
+use crate::core::model::spec::ModelSpec;
 use crate::core::simulate::simulated_measured_data;
 use crate::core::updating::{ModeMatching, ModeMatchingOptions};
 
@@ -211,4 +213,93 @@ fn a_drawn_set_has_the_planned_scatter() {
     let mean = x.iter().sum::<f64>() / x.len() as f64;
     let sd = (x.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (x.len() - 1) as f64).sqrt();
     assert!((sd / sigma - 1.0).abs() < 0.1, "{sd} against {sigma}");
+}
+
+/// A two-bay solid frame of six elements along each beam: its five beams' own channels at
+/// 1/3 and 2/3 of their length are element corners 2 and 4 of 6.
+fn small_solid() -> ModelSpec {
+    toml::from_str(
+        r#"name = "two-bay-solid"
+[solid_frame]
+bays = 2
+spring_factor = 50.0
+beam = { length = 0.49, in_plane = 0.008, out_of_plane = 0.08, divisions = [6, 1, 1] }
+coupler = { size = 0.04, divisions = 5 }
+material = { E = 2.1e11, nu = 0.3, rho = 7840.0 }
+"#,
+    )
+    .unwrap()
+}
+
+/// A solid's candidates are points on its beams' axes at every sixth of their length, less
+/// the two its own channels read: three places of three translations on each of 5 beams;
+/// each reads DOFs no own channel reads, and the planner takes them as channels.
+#[test]
+fn a_solids_candidates_are_its_beams_axis_points_not_read_already() {
+    use places::{Places, with_candidates};
+    let spec = small_solid();
+    let base = Model::from_spec(&spec).unwrap();
+    let w = with_candidates(Some(&spec), &base, Places::Nodes).unwrap();
+    let own = base.channels().len();
+    assert_eq!(own, 30);
+    assert_eq!(w.model.channels().len(), own + 45);
+    let added = &w.model.channels()[own..];
+    assert_eq!(added[0].name, "B1@0.167.x");
+    for c in added {
+        assert!(
+            base.channels().iter().all(|o| o.dofs != c.dofs),
+            "{} reads what an own channel reads",
+            c.name
+        );
+    }
+    let names: Vec<&str> = added.iter().map(|c| c.name.as_str()).collect();
+    assert!(
+        !names
+            .iter()
+            .any(|n| n.contains("@0.333") || n.contains("@0.667"))
+    );
+    // A planner over them: adding the candidates lowers no σ below what every channel gives.
+    let mut planner = Planner::new(w.model.clone(), 6, NOISE).unwrap();
+    let modes: Vec<usize> = (0..6).collect();
+    let own_idx: Vec<usize> = (0..own).collect();
+    let every: Vec<usize> = (0..own + 45).collect();
+    let (before, after) = (
+        planner.sigma(&own_idx, &modes).unwrap(),
+        planner.sigma(&every, &modes).unwrap(),
+    );
+    for (b, a) in before.iter().zip(&after) {
+        assert!(a.is_finite() && *a <= b * (1.0 + 1e-9), "{b} → {a}");
+    }
+}
+
+/// An imported model's candidates are its DOFs by label, less those a channel reads on its
+/// own: the 18-storey shear frame's 18 floors less its 6 measured; with no named
+/// locations, `nodes` is refused, naming why; and a name used twice is refused.
+#[test]
+fn an_imported_models_candidates_are_its_dofs_by_label() {
+    use places::{Places, with_candidates};
+    let json =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/smu-shear-18/model.json");
+    let base = crate::io::model::load_model(&json).unwrap();
+    let w = with_candidates(None, &base, Places::Dofs).unwrap();
+    assert_eq!(w.model.channels().len(), 18);
+    assert_eq!(w.candidates.len(), 18);
+    let added: Vec<&str> = w.model.channels()[6..]
+        .iter()
+        .map(|c| c.name.as_str())
+        .collect();
+    assert_eq!(&added[..3], ["floor1", "floor2", "floor4"]);
+    let Err(err) = with_candidates(None, &base, Places::Nodes) else {
+        panic!("nodes of a model with no locations");
+    };
+    assert!(format!("{err:#}").contains("names no locations"), "{err:#}");
+    let twice = Channel {
+        name: "floor3".into(),
+        dofs: vec![(0, 1.0)],
+    };
+    let err = base.with_channels(vec![twice]).unwrap_err();
+    assert!(err.to_string().contains("floor3"), "{err}");
+    // The model has no connection parameters: every parameter is watched.
+    let planner = Planner::new(w.model, 6, NOISE).unwrap();
+    assert_eq!(planner.watched().len(), 18);
 }
