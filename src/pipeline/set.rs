@@ -153,6 +153,7 @@ impl Tracker {
                 *sum += s;
             }
             st.commissioning_sets += 1;
+            st.commissioning_modes = st.commissioning_modes.max(set.modes.len());
             if st.accepted - st.unconverged >= u64::from(self.cfg.baseline_sets) {
                 st.baseline = Some(st.filters.iter().map(|f| f.estimate().level).collect());
                 let n = st.commissioning_sets as f64;
