@@ -33,7 +33,7 @@ pub use checkpoint::WalPosition;
 pub use checkpoint::{Checkpoint, EigenBlock, FleetPosition};
 pub use crosscheck::Crosscheck;
 pub use rejected::{REJECTED_PAYLOAD_LIMIT, Rejected};
-pub use status::{Ownership, Status};
+pub use status::{Advice, AdviceModes, AdviceSensors, Ownership, Status};
 pub use stiffness::{Estimate, ModeComparison, Termination};
 pub use wire::{Message, Schema, digest, finite, output_id, rfc3339, to_wire};
 

@@ -40,6 +40,48 @@ pub struct Status {
     /// A fleet daemon's ownership of the structure (absent outside a fleet).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ownership: Option<Ownership>,
+    /// Per connection whose alerts the commissioning left off, what would turn them on
+    /// (absent when every connection's alerts are on, or before the advice is computed).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub advice: Vec<Advice>,
+    /// Why no advice could be computed for connections with alerts off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub advice_unavailable: Option<String>,
+}
+
+/// What would turn on the loosening alerts of a connection that commissioning left off:
+/// the planner's prediction for the installed channels and modes, scaled to the σ the
+/// commissioning sets had, and the same prediction with sensors added or more modes.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Advice {
+    pub connection: String,
+    /// Mean per-set σ over the commissioning sets, relative to the baseline.
+    pub measured_std: f64,
+    /// The per-set relative σ predicted for the installed channels and modes.
+    pub predicted_std: f64,
+    /// The channels and modes the commissioning sets had.
+    pub channels: usize,
+    pub modes: usize,
+    /// Candidate places to add sensors at, first first, after which the alerts come on.
+    pub sensors: Option<AdviceSensors>,
+    /// The lowest modes to identify instead, with the installed channels.
+    pub more_modes: Option<AdviceModes>,
+    /// The same in one sentence.
+    pub summary: String,
+}
+
+/// Sensors that would turn a connection's alerts on, and its per-set σ then.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AdviceSensors {
+    pub add: Vec<String>,
+    pub std: f64,
+}
+
+/// The number of lowest modes that would turn a connection's alerts on, and its σ then.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AdviceModes {
+    pub modes: usize,
+    pub std: f64,
 }
 
 /// Which fleet member tracks the structure, since when, in which epoch.

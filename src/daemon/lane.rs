@@ -206,57 +206,6 @@ fn start(
     Ok((tx, thread))
 }
 
-/// Says, on a thread of its own, what would turn on the alerts of the connections the
-/// commissioning left off ([`crate::pipeline::advice`]): one warning per connection. The
-/// candidates are the model's places of every kind (rotations too); at most 12 sensors, or
-/// twice the commissioning sets' modes, are tried.
-fn advise(model: crate::io::driver::StructureModel, tracker: &Tracker, settings: &Settings) {
-    use crate::core::plan::places::{Places, with_candidates};
-    use crate::pipeline::advice::{Limits, remedies};
-    let off = tracker.alerts_off_sigma();
-    let n_modes = tracker.state().commissioning_modes;
-    if off.is_empty() || n_modes == 0 {
-        return;
-    }
-    let t = &settings.tracker;
-    let rules = crate::pipeline::detectability::Detectability {
-        thresholds: t.alerts,
-        drift: t.drift,
-        baseline_sets: t.baseline_sets,
-        per_day: 4.0,
-    };
-    let noise = crate::core::simulate::Noise {
-        frequency_cov: 0.01,
-        shape_nsd: 0.05,
-    };
-    let name = model.1.name.clone();
-    let run = move || -> Result<()> {
-        let (spec, base) = &*model;
-        let with = with_candidates(spec.as_ref(), base, Places::All)?;
-        let installed: Vec<usize> = (0..base.channels().len()).collect();
-        let limits = Limits {
-            max_add: 12,
-            max_modes: 2 * n_modes,
-        };
-        for r in remedies(&with, &installed, n_modes, noise, &rules, &off, limits)? {
-            let connection = &base.parameters()[r.parameter].name;
-            let line = r.describe(installed.len(), n_modes);
-            tracing::warn!(structure = base.name, connection, "alerts off: {line}");
-        }
-        Ok(())
-    };
-    let spawned = std::thread::Builder::new()
-        .name(format!("advice-{name}"))
-        .spawn(move || {
-            if let Err(e) = run() {
-                tracing::warn!(structure = name, "no advice on the alerts off: {e:#}");
-            }
-        });
-    if let Err(e) = spawned {
-        tracing::warn!("no advice on the alerts off: {e}");
-    }
-}
-
 /// One structure as [`recover`] leaves it, before its tracking thread starts.
 struct Recovered {
     worker: Worker,
@@ -293,7 +242,6 @@ fn recover(
     for (connection, why) in tracker.alerts_off() {
         tracing::warn!(structure = s.name, connection, "alerts off: {why}");
     }
-    advise(structure_model.clone(), &tracker, settings);
     tracker.set_max_future(Some(chrono::TimeDelta::milliseconds(
         (d.max_future_s * 1e3).round() as i64,
     )));

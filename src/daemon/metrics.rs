@@ -90,6 +90,9 @@ pub struct Status {
     pub wal: WalStatus,
     /// A fleet member's ownership of the structure.
     pub ownership: Option<contract::Ownership>,
+    /// What would turn on the alerts commissioning left off ([`crate::daemon::advice`]).
+    pub advice: Vec<contract::Advice>,
+    pub advice_unavailable: Option<String>,
 }
 
 impl Status {
@@ -259,6 +262,8 @@ impl Shared {
             last_checkpoint: st.last_checkpoint,
             wal: st.wal,
             ownership: st.ownership,
+            advice: st.advice,
+            advice_unavailable: st.advice_unavailable,
         }
     }
 }

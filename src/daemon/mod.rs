@@ -20,6 +20,7 @@
 //! queued is processed, a running cross-check is awaited, the state is checkpointed and the
 //! log file is finished, so nothing received is lost and a restart duplicates nothing.
 
+pub mod advice;
 pub mod console;
 pub mod contact;
 pub mod fleet;

@@ -113,6 +113,10 @@ pub struct Worker {
     /// Inputs are being handled again ([`Worker::resume`]): no checkpoint until all are,
     /// since none could say where among them it stands.
     replaying: bool,
+    /// The structure's model, for the advice on connections with alerts off.
+    model: StructureModel,
+    /// The advice has been started ([`super::advice`]): once the tracker has a baseline.
+    advised: bool,
 }
 
 /// Where a starting worker finds the inputs it must handle again.
@@ -144,7 +148,7 @@ impl Worker {
         }
         let lane = OffPath::start(
             &format!("crosscheck-{name}"),
-            HashMap::from([(name, model)]),
+            HashMap::from([(name, model.clone())]),
             crosscheck,
             tracker.config().shape_weight,
         )?;
@@ -162,6 +166,8 @@ impl Worker {
             front,
             remote: None,
             replaying: false,
+            model,
+            advised: false,
         };
         w.update_status()?;
         Ok(w)
@@ -354,6 +360,11 @@ impl Worker {
             st.last_set_time = t.last_time.map(rfc3339);
             st.log_file = log;
         });
+        if !self.advised && t.baseline.is_some() {
+            let shared = self.out.shared.clone();
+            self.advised = true;
+            super::advice::advise(self.model.clone(), &self.tracker, shared);
+        }
         Ok(())
     }
 }

@@ -16,9 +16,31 @@
 use anyhow::Result;
 
 use super::detectability::Detectability;
+use super::{Tracker, alerts_off};
 use crate::core::plan::places::WithCandidates;
 use crate::core::plan::{Criterion, Planner};
 use crate::core::simulate::Noise;
+
+impl Tracker {
+    /// The connections whose alerts are off after commissioning (indices into θ), each
+    /// with its mean per-set σ over the commissioning sets, relative to its baseline.
+    pub fn alerts_off_sigma(&self) -> Vec<(usize, f64)> {
+        let st = &self.state;
+        let (Some(b), Some(s)) = (&st.baseline, &st.baseline_std) else {
+            return Vec::new();
+        };
+        alerts_off(&self.cfg.alerts, &self.is_connection, st)
+            .iter()
+            .enumerate()
+            .filter(|(_, why)| why.is_some())
+            .map(|(l, _)| (l, s[l] / b[l].abs()))
+            .collect()
+    }
+}
+
+/// Candidate channels to add (names), first first, and a connection's σ then (measured
+/// scale); `None` when the sensors tried do not turn its alerts on.
+pub type Sensors = Option<(Vec<String>, f64)>;
 
 /// A connection with alerts off, and what would turn them on.
 #[derive(Debug, Clone, PartialEq)]
@@ -29,9 +51,8 @@ pub struct Remedy {
     pub measured: f64,
     /// The relative σ the planner predicts with the channels and modes of the sets.
     pub predicted: f64,
-    /// The candidate channels to add (names), first first, and the σ then (measured
-    /// scale); `None` when `max_add` do not do it.
-    pub sensors: Option<(Vec<String>, f64)>,
+    /// The candidate channels to add, and the σ then; `None` when `max_add` do not do it.
+    pub sensors: Sensors,
     /// The number of lowest modes to identify instead, and the σ then; `None` when
     /// `max_modes` do not do it.
     pub modes: Option<(usize, f64)>,
@@ -174,7 +195,7 @@ fn by_sensors(
     rules: &Detectability,
     scaled: &Scaled,
     limits: Limits,
-) -> Result<Vec<Option<(Vec<String>, f64)>>> {
+) -> Result<Vec<Sensors>> {
     let model = planner.model().clone();
     let mut left: Vec<usize> = with
         .candidates
@@ -186,7 +207,7 @@ fn by_sensors(
         needed: bound(rules),
     };
     let mut chosen = installed.to_vec();
-    let mut out: Vec<Option<(Vec<String>, f64)>> = vec![None; scaled.parameters.len()];
+    let mut out: Vec<Sensors> = vec![None; scaled.parameters.len()];
     for _ in 0..limits.max_add.min(left.len()) {
         let mut best: Option<(usize, [f64; 4], Vec<f64>)> = None;
         for (i, &c) in left.iter().enumerate() {
@@ -265,12 +286,7 @@ mod tests {
 
     fn rules() -> Detectability {
         let s = crate::settings::Settings::load(None).unwrap();
-        Detectability {
-            thresholds: s.tracker.alerts,
-            drift: s.tracker.drift,
-            baseline_sets: s.tracker.baseline_sets,
-            per_day: 4.0,
-        }
+        Detectability::of(&s.tracker, 4.0)
     }
 
     /// The lab frame with every fourth of its channels and 5 modes, its connections with
@@ -289,7 +305,8 @@ mod tests {
         let mut planner = Planner::new(with.model.clone(), 5, NOISE)
             .unwrap()
             .with_reference(&installed);
-        let rel = planner.relative(&planner.sigma(&installed, &modes).unwrap());
+        let sigma = planner.sigma(&installed, &modes).unwrap();
+        let rel = planner.relative(&sigma);
         let off: Vec<(usize, f64)> = planner
             .watched()
             .iter()

@@ -34,6 +34,16 @@ pub struct Detectability {
 }
 
 impl Detectability {
+    /// The rules of a tracker configured by `cfg`, with sets arriving `per_day` a day.
+    pub fn of(cfg: &super::TrackerConfig, per_day: f64) -> Self {
+        Self {
+            thresholds: cfg.alerts,
+            drift: cfg.drift,
+            baseline_sets: cfg.baseline_sets,
+            per_day,
+        }
+    }
+
     /// The z of the thresholds' confidence.
     pub fn z(&self) -> f64 {
         inverse_normal_cdf(self.thresholds.confidence)

@@ -108,9 +108,12 @@ pub struct TrackerState {
     pub commissioning_std_sum: Vec<f64>,
     #[serde(default)]
     pub commissioning_sets: u64,
-    /// The most modes a commissioning set carried (what start-up advice plans with).
+    /// The most modes a commissioning set carried, and every channel one named (what the
+    /// advice on connections with alerts off plans with).
     #[serde(default)]
     pub commissioning_modes: usize,
+    #[serde(default)]
+    pub commissioning_channels: Vec<String>,
     pub filters: Vec<DriftFilter>,
     pub loosening: Vec<LooseningState>,
     pub inadequacy: InadequacyState,
@@ -253,6 +256,7 @@ impl Tracker {
             commissioning_std_sum: Vec::new(),
             commissioning_sets: 0,
             commissioning_modes: 0,
+            commissioning_channels: Vec::new(),
             filters: nominal
                 .iter()
                 .map(|&v| DriftFilter::new(v, cfg.drift))
@@ -394,21 +398,6 @@ impl Tracker {
             .into_iter()
             .enumerate()
             .filter_map(|(l, why)| Some((self.model.parameters()[l].name.clone(), why?)))
-            .collect()
-    }
-
-    /// The connections whose alerts are off after commissioning (indices into θ), each
-    /// with its mean per-set σ over the commissioning sets, relative to its baseline.
-    pub fn alerts_off_sigma(&self) -> Vec<(usize, f64)> {
-        let st = &self.state;
-        let (Some(b), Some(s)) = (&st.baseline, &st.baseline_std) else {
-            return Vec::new();
-        };
-        alerts_off(&self.cfg.alerts, &self.is_connection, st)
-            .iter()
-            .enumerate()
-            .filter(|(_, why)| why.is_some())
-            .map(|(l, _)| (l, s[l] / b[l].abs()))
             .collect()
     }
 

@@ -154,6 +154,11 @@ impl Tracker {
             }
             st.commissioning_sets += 1;
             st.commissioning_modes = st.commissioning_modes.max(set.modes.len());
+            for c in &set.channels {
+                if !st.commissioning_channels.contains(c) {
+                    st.commissioning_channels.push(c.clone());
+                }
+            }
             if st.accepted - st.unconverged >= u64::from(self.cfg.baseline_sets) {
                 st.baseline = Some(st.filters.iter().map(|f| f.estimate().level).collect());
                 let n = st.commissioning_sets as f64;

@@ -9,7 +9,7 @@ use anyhow::{Context, Result, bail};
 mod assess;
 mod draw;
 mod places;
-mod verify;
+pub(crate) mod verify;
 
 use super::write_json;
 use crate::core::plan::places::WithCandidates;
@@ -104,12 +104,7 @@ pub fn run(args: &PlanArgs) -> Result<()> {
         .filter(|&c| planner.moves(c, &modes))
         .collect();
     let judge = Judge {
-        rules: Detectability {
-            thresholds: settings.tracker.alerts,
-            drift: settings.tracker.drift,
-            baseline_sets: settings.tracker.baseline_sets,
-            per_day: args.per_day,
-        },
+        rules: Detectability::of(&settings.tracker, args.per_day),
         sets: args.sets,
         target: args.target_loss,
     };

@@ -22,7 +22,7 @@ type Tracked = (Vec<Vec<f64>>, Vec<Vec<f64>>, Box<crate::contract::Estimate>);
 const SEED: u64 = 7;
 
 /// What is simulated.
-pub(super) struct Check<'a> {
+pub(crate) struct Check<'a> {
     pub channels: &'a [usize],
     pub modes: &'a [usize],
     pub sets: usize,
@@ -76,12 +76,32 @@ impl Check<'_> {
 
     /// The sets simulated and tracked.
     fn track(&self, planner: &Planner, cfg: &TrackerConfig) -> Result<Tracked> {
-        let mut tracker = Tracker::new(planner.model().clone(), cfg.clone())?;
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(SEED);
-        let start: DateTime<Utc> = "2026-01-01T00:00:00Z".parse()?;
         let mut thetas = Vec::with_capacity(self.sets);
         let mut stds = Vec::with_capacity(self.sets);
         let mut last = None;
+        self.feed(planner, cfg, |e| {
+            thetas.push(e.parameters.iter().map(|p| p.theta).collect());
+            let std = e.parameters.iter().map(|p| p.std.unwrap_or(f64::NAN));
+            stds.push(std.collect());
+            last = Some(e);
+        })?;
+        let Some(last) = last else {
+            bail!("--verify: the tracker gave no estimate");
+        };
+        Ok((thetas, stds, last))
+    }
+
+    /// A tracker of `planner`'s model that has tracked the simulated sets, each estimate
+    /// handed to `estimate`.
+    pub(crate) fn feed(
+        &self,
+        planner: &Planner,
+        cfg: &TrackerConfig,
+        mut estimate: impl FnMut(Box<crate::contract::Estimate>),
+    ) -> Result<Tracker> {
+        let mut tracker = Tracker::new(planner.model().clone(), cfg.clone())?;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(SEED);
+        let start: DateTime<Utc> = "2026-01-01T00:00:00Z".parse()?;
         for k in 0..self.sets {
             let ms = (k as f64 * 86_400_000.0 / self.per_day).round() as i64;
             let time = start + Duration::milliseconds(ms);
@@ -89,12 +109,7 @@ impl Check<'_> {
             let payload = serde_json::to_vec(&set.to_json())?;
             for action in tracker.handle(time, &payload) {
                 match action {
-                    Action::Publish(Output::Estimate(e)) => {
-                        thetas.push(e.parameters.iter().map(|p| p.theta).collect());
-                        let std = e.parameters.iter().map(|p| p.std.unwrap_or(f64::NAN));
-                        stds.push(std.collect());
-                        last = Some(e);
-                    }
+                    Action::Publish(Output::Estimate(e)) => estimate(e),
                     Action::Publish(Output::Rejected(r)) => {
                         bail!("--verify: the tracker rejected simulated set {k}: {r:?}")
                     }
@@ -102,10 +117,7 @@ impl Check<'_> {
                 }
             }
         }
-        let Some(last) = last else {
-            bail!("--verify: the tracker gave no estimate");
-        };
-        Ok((thetas, stds, last))
+        Ok(tracker)
     }
 
     /// One simulated set at `time`.
