@@ -195,6 +195,7 @@ pub fn structure(c: &Console, s: &Shared, window: Window) -> String {
     );
     body.push_str(&summary(s, &st));
     body.push_str(&connection_table(&st));
+    body.push_str(&advice(&st));
     let h = logged(c, &s.structure);
     let order = st.last_estimate.as_ref().map_or(Vec::new(), |e| {
         let names: Vec<String> = e.parameters.iter().map(|p| p.name.clone()).collect();
@@ -285,6 +286,27 @@ fn frequencies(st: &Status) -> String {
          <th>model, Hz</th><th>model − measured, %</th><th>MAC</th><th>model mode</th>\
          </tr></thead><tbody>{rows}</tbody></table>"
     )
+}
+
+/// What would turn on the alerts commissioning left off ([`crate::daemon::advice`]);
+/// nothing when every connection's alerts are on.
+fn advice(st: &Status) -> String {
+    if let Some(why) = &st.advice_unavailable {
+        return format!("<h2>Alerts off</h2><p>no advice: {}</p>", escape(why));
+    }
+    if st.advice.is_empty() {
+        return String::new();
+    }
+    let mut items = String::new();
+    for a in &st.advice {
+        let _ = write!(
+            items,
+            "<li><b>{}</b>: {}</li>",
+            escape(&a.connection),
+            escape(&a.summary)
+        );
+    }
+    format!("<h2>Alerts off</h2><ul>{items}</ul>")
 }
 
 /// The last cross-check of mode matching against the Bayesian MAP.
