@@ -1,5 +1,5 @@
 //! Statistics the numerics and the tracker share: the standard normal distribution (Φ,
-//! Φ⁻¹, the 95 % quantile) and the χ² bounds of a misfit.
+//! Φ⁻¹, the 95 % quantile), the χ² bounds of a misfit and the sample standard deviation.
 
 /// Two-sided 95 % normal quantile.
 pub const Z95: f64 = 1.959_963_984_540_054;
@@ -97,9 +97,24 @@ pub fn chi2_bound(n_data: usize, n_params: usize) -> f64 {
     chi2_bound_of_dof(chi2_dof(n_data, n_params))
 }
 
+/// The sample standard deviation (with n − 1), NaN for fewer than two values.
+pub fn sample_std(x: &[f64]) -> f64 {
+    let n = x.len() as f64;
+    let mean = x.iter().sum::<f64>() / n;
+    (x.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Eight values of mean 5 whose squared deviations sum to 32: σ = √(32/7).
+    #[test]
+    fn sample_std_divides_by_n_minus_one() {
+        let x = [2.0, 4.0, 4.0, 4.0, 5.0, 5.0, 7.0, 9.0];
+        assert!((sample_std(&x) - (32.0_f64 / 7.0).sqrt()).abs() < 1e-15);
+        assert!(sample_std(&[1.0]).is_nan());
+    }
 
     #[test]
     fn normal_cdf_known_values() {

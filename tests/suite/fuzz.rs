@@ -202,10 +202,7 @@ fn fuzz(n: u64, seed: u64) -> Report {
         .into_iter()
         .map(|(_, m)| serde_json::from_slice(&m.data).unwrap())
         .collect();
-    let s = settings(&[
-        ("BOLTWATCH__TRACKER__CROSSCHECK_EVERY_SETS", "0"),
-        ("BOLTWATCH__TRACKER__CROSSCHECK_EVERY_S", "0"),
-    ]);
+    let s = settings(&super::tracker::NO_CROSSCHECK);
     let model = boltwatch::io::model::load_model(&s.structures[0].model).unwrap();
     let mut tracker = Tracker::new(model.clone(), s.tracker.clone()).unwrap();
     tracker.set_max_future(Some(TimeDelta::seconds(300)));

@@ -12,7 +12,7 @@ use boltwatch::io::model::load_model;
 use super::common::simulated_data;
 use super::tracker::tmp_dir;
 
-fn export(model: &Path, dir: &Path) -> PathBuf {
+pub(crate) fn export(model: &Path, dir: &Path) -> PathBuf {
     let out = Command::new(env!("CARGO_BIN_EXE_boltwatch"))
         .args(["export-matrices", "--model"])
         .arg(model)

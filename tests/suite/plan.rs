@@ -94,10 +94,7 @@ fn the_space_frames_plan_holds_when_simulated_and_tracked() {
 /// index of the set that raised them.
 fn alerts_of(model: &Model, sc: &Scenario) -> Vec<(usize, String, AlertLevel)> {
     let spec = boltwatch::io::model::load_spec(std::path::Path::new("bundled:lab-frame")).unwrap();
-    let s = settings(&[
-        ("BOLTWATCH__TRACKER__CROSSCHECK_EVERY_SETS", "0"),
-        ("BOLTWATCH__TRACKER__CROSSCHECK_EVERY_S", "0"),
-    ]);
+    let s = settings(&super::tracker::NO_CROSSCHECK);
     let mut tracker = Tracker::new(model.clone(), s.tracker).unwrap();
     let mut out = Vec::new();
     sc.generate(&spec, |k, set, _| {
@@ -178,17 +175,8 @@ fn sigma_of(plan: &Value, key: &str) -> Vec<(String, f64)> {
 #[test]
 fn a_frame_and_its_exported_matrices_plan_alike() {
     let dir = tmp_dir("plan-matrices");
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_boltwatch"))
-        .args(["export-matrices", "--model", &model_path("lab-frame"), "-o"])
-        .arg(dir.join("matrices"))
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let json = dir.join("matrices/model.json");
+    let frame_file = model_path("lab-frame");
+    let json = super::import::export(std::path::Path::new(&frame_file), &dir.join("matrices"));
     let frame = plan("plan-frame", &model_path("lab-frame"), |a| {
         a.candidates = Candidates::All;
         a.add = Some(1);
@@ -252,17 +240,8 @@ fn the_measured_shear_frames_instrumentation_determines_no_storey() {
 /// modes that carry them are higher; only more modes would help.)
 #[test]
 fn a_solid_frame_takes_sensors_on_its_beams() {
-    let dir = tmp_dir("plan-solid");
-    let model = dir.join("two-bay.toml");
-    std::fs::write(
-        &model,
-        "name = \"two-bay-solid\"\n[solid_frame]\nbays = 2\nspring_factor = 50.0\n\
-         beam = { length = 0.49, in_plane = 0.008, out_of_plane = 0.08, divisions = [6, 1, 1] }\n\
-         coupler = { size = 0.04, divisions = 5 }\n\
-         material = { E = 2.1e11, nu = 0.3, rho = 7840.0 }\n",
-    )
-    .unwrap();
-    let p = plan("plan-solid-out", model.to_str().unwrap(), |a| {
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/two-bay-solid.toml");
+    let p = plan("plan-solid-out", model, |a| {
         a.candidates = Candidates::Nodes;
         a.modes = 10;
         a.add = Some(2);

@@ -187,18 +187,7 @@ pub fn four_bay() -> Model {
 /// A two-bay frame with a coarse mesh: the same construction, small enough for the dense
 /// solver.
 pub fn two_bay_coarse() -> Model {
-    Model::from_toml(
-        r#"
-name = "two-bay-coarse"
-[solid_frame]
-bays = 2
-spring_factor = 50.0
-beam = { length = 0.49, in_plane = 0.008, out_of_plane = 0.08, divisions = [6, 1, 1] }
-coupler = { size = 0.04, divisions = 5 }
-material = { E = 2.1e11, nu = 0.3, rho = 7840.0 }
-"#,
-    )
-    .unwrap()
+    Model::from_toml(include_str!("../data/two-bay-solid.toml")).unwrap()
 }
 
 /// The four-bay model file: size within the issue's 28,000–36,000 DOF, 4 parameters, 18

@@ -620,10 +620,7 @@ fn a_loosening_space_frame_connection_raises_its_alarm_alone() {
         raw: Default::default(),
     })
     .unwrap();
-    let mut settings = super::tracker::settings(&[
-        ("BOLTWATCH__TRACKER__CROSSCHECK_EVERY_SETS", "0"),
-        ("BOLTWATCH__TRACKER__CROSSCHECK_EVERY_S", "0"),
-    ]);
+    let mut settings = super::tracker::settings(&super::tracker::NO_CROSSCHECK);
     settings.structures = vec![StructureSettings {
         name: "space-frame".into(),
         model: model.into(),

@@ -96,7 +96,7 @@ fn index_of(estimates: &[Value], time: &Value) -> usize {
 }
 
 /// No cross-checks: these tests are about tracking.
-const NO_CROSSCHECK: [(&str, &str); 2] = [
+pub(crate) const NO_CROSSCHECK: [(&str, &str); 2] = [
     ("BOLTWATCH__TRACKER__CROSSCHECK_EVERY_SETS", "0"),
     ("BOLTWATCH__TRACKER__CROSSCHECK_EVERY_S", "0"),
 ];

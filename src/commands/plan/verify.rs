@@ -13,6 +13,7 @@ use super::assess::finite;
 use crate::contract::Output;
 use crate::contract::modal_set::{MeasuredMode, ModalSet};
 use crate::core::plan::Planner;
+use crate::core::stats::sample_std;
 use crate::pipeline::{Action, Tracker, TrackerConfig};
 
 /// Every set's θ and σ as the tracker estimated them, and its last estimate.
@@ -153,11 +154,4 @@ impl Check<'_> {
             unexplained_peaks: Vec::new(),
         }
     }
-}
-
-/// The sample standard deviation.
-fn sample_std(x: &[f64]) -> f64 {
-    let n = x.len() as f64;
-    let mean = x.iter().sum::<f64>() / n;
-    (x.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt()
 }

@@ -92,9 +92,7 @@ fn the_prediction_matches_the_scatter_of_fits_to_noisy_sets() {
         .collect();
     for (l, p) in predicted.iter().enumerate() {
         let x: Vec<f64> = fits.iter().map(|t| t[l]).collect();
-        let mean = x.iter().sum::<f64>() / x.len() as f64;
-        let var = x.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (x.len() - 1) as f64;
-        let sample = var.sqrt();
+        let sample = crate::core::stats::sample_std(&x);
         assert!(
             (sample / p - 1.0).abs() < 0.2,
             "{l}: sample {sample} against {p}"
@@ -210,25 +208,14 @@ fn a_drawn_set_has_the_planned_scatter() {
             set[0].0.shape[0]
         })
         .collect();
-    let mean = x.iter().sum::<f64>() / x.len() as f64;
-    let sd = (x.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (x.len() - 1) as f64).sqrt();
+    let sd = crate::core::stats::sample_std(&x);
     assert!((sd / sigma - 1.0).abs() < 0.1, "{sd} against {sigma}");
 }
 
 /// A two-bay solid frame of six elements along each beam: its five beams' own channels at
 /// 1/3 and 2/3 of their length are element corners 2 and 4 of 6.
 fn small_solid() -> ModelSpec {
-    toml::from_str(
-        r#"name = "two-bay-solid"
-[solid_frame]
-bays = 2
-spring_factor = 50.0
-beam = { length = 0.49, in_plane = 0.008, out_of_plane = 0.08, divisions = [6, 1, 1] }
-coupler = { size = 0.04, divisions = 5 }
-material = { E = 2.1e11, nu = 0.3, rho = 7840.0 }
-"#,
-    )
-    .unwrap()
+    toml::from_str(include_str!("../../../tests/data/two-bay-solid.toml")).unwrap()
 }
 
 /// A solid's candidates are points on its beams' axes at every sixth of their length, less
