@@ -2,7 +2,8 @@
 //! (at start from its checkpoint, or when commissioning ends during the run), what would
 //! turn each such connection's alerts on ([`crate::pipeline::advice`]), computed on a
 //! thread of its own, logged as one warning per connection and kept in the status
-//! (`advice`, or `advice_unavailable` with the reason).
+//! (`advice`, or `advice_unavailable` with the reason). It is started only if it fits the
+//! memory budget ([`MemoryBudget::refuses_advice`]).
 //!
 //! The candidates are the model's places of every kind ([`Places::All`]: translations and
 //! rotations at every node); at most [`MAX_ADD`] sensors, or twice the commissioning sets'
@@ -18,7 +19,7 @@ use super::metrics::Shared;
 use crate::contract::{Advice, AdviceModes, AdviceSensors};
 use crate::core::plan::places::{Places, with_candidates};
 use crate::core::simulate::Noise;
-use crate::io::driver::StructureModel;
+use crate::io::driver::{MemoryBudget, StructureModel};
 use crate::pipeline::Tracker;
 use crate::pipeline::advice::{Limits, Remedy, remedies};
 use crate::pipeline::detectability::Detectability;
@@ -35,13 +36,23 @@ const NOISE: Noise = Noise {
 /// Sets per day the filter's commissioning σ assumes (the planner's default).
 const PER_DAY: f64 = 4.0;
 
-/// Starts the advice for `tracker`'s connections with alerts off, if it has any; returns
-/// whether it started (`false`: nothing to advise on yet, or no connection is off).
-pub fn advise(model: StructureModel, tracker: &Tracker, shared: Arc<Shared>) -> bool {
+/// Starts the advice for `tracker`'s connections with alerts off, if it has any and it
+/// fits `budget`; returns whether it started (`false`: nothing to advise on yet, no
+/// connection is off, or the budget refuses it, which the status then says).
+pub fn advise(
+    model: StructureModel,
+    tracker: &Tracker,
+    shared: Arc<Shared>,
+    budget: Option<MemoryBudget>,
+) -> bool {
     let off = tracker.alerts_off_sigma();
     let n_modes = tracker.state().commissioning_modes;
     let channels = tracker.state().commissioning_channels.clone();
     if off.is_empty() || n_modes == 0 {
+        return false;
+    }
+    if let Some(why) = budget.and_then(|b| b.refuses_advice(&model.1, 2 * n_modes)) {
+        publish(&shared, Err(anyhow::anyhow!(why)));
         return false;
     }
     let rules = Detectability::of(tracker.config(), PER_DAY);
@@ -219,7 +230,8 @@ mod tests {
     /// The advice [`advise`] puts in the status, once its thread has finished.
     fn in_status(model: &StructureModel, tracker: &Tracker) -> Vec<Advice> {
         let shared = Shared::new("lab-frame", 8, 1 << 20, 1 << 20);
-        assert!(advise(model.clone(), tracker, shared.clone()));
+        let budget = Some(MemoryBudget::from_mib(1024));
+        assert!(advise(model.clone(), tracker, shared.clone(), budget));
         for _ in 0..600 {
             let st = shared.status_reply();
             assert_eq!(st.advice_unavailable, None);
@@ -256,11 +268,19 @@ mod tests {
     }
 
     /// The daemon's route ([`advise`], on a thread of its own) puts the same advice in the
-    /// status as the computation itself.
+    /// status as the computation itself; under a memory budget it would not fit in, it is
+    /// not started and the status says why.
     #[test]
     fn the_advice_is_in_the_status() {
         let t = Trial::run("lab-frame", 4, 5);
         assert_eq!(in_status(&t.model, &t.tracker), t.advice);
+        let shared = Shared::new("lab-frame", 8, 1 << 20, 1 << 20);
+        let tight = Some(MemoryBudget::from_mib(1));
+        assert!(!advise(t.model.clone(), &t.tracker, shared.clone(), tight));
+        let st = shared.status_reply();
+        assert!(st.advice.is_empty());
+        let why = st.advice_unavailable.unwrap();
+        assert!(why.contains("daemon.memory_mib = 1;"), "{why}");
     }
 
     /// The bundled space frame with its 78 channels and 15 modes: its tracker turns 11 of

@@ -117,6 +117,8 @@ pub struct Worker {
     model: StructureModel,
     /// The advice has been started ([`super::advice`]): once the tracker has a baseline.
     advised: bool,
+    /// The memory the advice, like a cross-check, must fit in.
+    budget: Option<crate::io::driver::MemoryBudget>,
 }
 
 /// Where a starting worker finds the inputs it must handle again.
@@ -138,6 +140,7 @@ impl Worker {
         identify: IdentifySettings,
     ) -> Result<Self> {
         let name = tracker.model().name.clone();
+        let budget = crosscheck.budget;
         let front = AccelFront::for_model(model.clone(), identify);
         // A structure whose cross-check would not fit the memory budget is reported now;
         // each cross-check is checked again when it is due (the process grows meanwhile).
@@ -168,6 +171,7 @@ impl Worker {
             replaying: false,
             model,
             advised: false,
+            budget,
         };
         w.update_status()?;
         Ok(w)
@@ -363,7 +367,7 @@ impl Worker {
         if !self.advised && t.baseline.is_some() {
             let shared = self.out.shared.clone();
             self.advised = true;
-            super::advice::advise(self.model.clone(), &self.tracker, shared);
+            super::advice::advise(self.model.clone(), &self.tracker, shared, self.budget);
         }
         Ok(())
     }
